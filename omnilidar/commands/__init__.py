@@ -1,0 +1,1 @@
+"""One module per ``omnilidar`` subcommand (see ``omnilidar.cli``)."""

@@ -1,0 +1,1 @@
+"""Sensors, scans, range images and the synthetic LiDAR world."""
