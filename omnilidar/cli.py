@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+import shlex
 import sys
 
 from omnilidar import __version__, commands
@@ -40,6 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if not sys.stderr.isatty():
+        # Logs start with the exact line that reruns this stage by hand.
+        print("$ omnilidar " + shlex.join(sys.argv[1:] if argv is None else argv), file=sys.stderr, flush=True)
     try:
         code = args._run(args)
     except InputError as err:

@@ -1,0 +1,18 @@
+# OmniLiDAR GDA pipeline. Thin on purpose: configuration, validation, rule files.
+# Every cluster job re-parses this file, so nothing heavy is imported here.
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+include: "rules/common.smk"
+include: "rules/data.smk"
+
+
+rule all:
+    default_target: True
+    input:
+        "results/data_summary.json",

@@ -1,0 +1,1 @@
+"""Domains: weather and sensor effects, scene specs and the domain builder."""

@@ -1,0 +1,1 @@
+"""Physically based effects. Each effect module defines the same interface (see base.py)."""

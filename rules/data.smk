@@ -1,0 +1,170 @@
+# Data stage: generate the synthetic datasets (when no real root is configured),
+# index every dataset, and summarise scene statistics.
+
+SYNTH = f"{DATA}/synthetic"
+
+# One job per shard (sequence, platform or split), never one job per scan.
+SYNTHESIZE = (
+    "omnilidar synthesize {params.dataset} --shard {params.shard} --settings {params.settings:q} "
+    "--seed {params.seed} --out {output} > {log} 2>&1"
+)
+
+
+def synthetic_shards(name):
+    """Shard names the synthetic world writes for one dataset."""
+    spec = config["synthetic"]["datasets"][name]
+    if name == "semantickitti":
+        return [f"{int(s):02d}" for s in spec["sequences"]]
+    if name == "kitti360":
+        return [f"{int(s):04d}" for s in spec["sequences"]]
+    if name == "pi3det":
+        return list(spec["platforms"])
+    if name == "nuscenes":
+        return list(spec["splits"])
+    raise ValueError(f"unknown dataset {name}")
+
+
+def synthetic_shard_dirs(name):
+    pattern = {
+        "semantickitti": "{root}/sequences/{shard}",
+        "kitti360": "{root}/data_3d_raw/2013_05_28_drive_{shard}_sync",
+        "pi3det": "{root}/{shard}",
+        "nuscenes": "{root}/{shard}",
+    }[name]
+    return [pattern.format(root=f"{SYNTH}/{name}", shard=s) for s in synthetic_shards(name)]
+
+
+rule synthesize_semantickitti:
+    output:
+        directory(f"{SYNTH}/semantickitti/sequences/{{shard}}"),
+    wildcard_constraints:
+        shard=r"\d\d",
+    params:
+        dataset="semantickitti",
+        shard=lambda w: w.shard,
+        settings=settings("synthetic"),
+        seed=config["seed"],
+        code=code("synthesize"),
+    log:
+        f"logs/synthesize/semantickitti_{{shard}}.log",
+    benchmark:
+        f"benchmarks/out/synthesize/semantickitti_{{shard}}.tsv"
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    shell:
+        SYNTHESIZE
+
+
+rule synthesize_kitti360:
+    output:
+        directory(f"{SYNTH}/kitti360/data_3d_raw/2013_05_28_drive_{{shard}}_sync"),
+    wildcard_constraints:
+        shard=r"\d{4}",
+    params:
+        dataset="kitti360",
+        shard=lambda w: w.shard,
+        settings=settings("synthetic"),
+        seed=config["seed"],
+        code=code("synthesize"),
+    log:
+        f"logs/synthesize/kitti360_{{shard}}.log",
+    benchmark:
+        f"benchmarks/out/synthesize/kitti360_{{shard}}.tsv"
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    shell:
+        SYNTHESIZE
+
+
+rule synthesize_pi3det:
+    output:
+        directory(f"{SYNTH}/pi3det/{{shard}}"),
+    wildcard_constraints:
+        shard=r"vehicle|drone|quadruped",
+    params:
+        dataset="pi3det",
+        shard=lambda w: w.shard,
+        settings=settings("synthetic"),
+        seed=config["seed"],
+        code=code("synthesize"),
+    log:
+        f"logs/synthesize/pi3det_{{shard}}.log",
+    benchmark:
+        f"benchmarks/out/synthesize/pi3det_{{shard}}.tsv"
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    shell:
+        SYNTHESIZE
+
+
+rule synthesize_nuscenes:
+    output:
+        directory(f"{SYNTH}/nuscenes/{{shard}}"),
+    wildcard_constraints:
+        shard=r"train|val",
+    params:
+        dataset="nuscenes",
+        shard=lambda w: w.shard,
+        settings=settings("synthetic"),
+        seed=config["seed"],
+        code=code("synthesize"),
+    log:
+        f"logs/synthesize/nuscenes_{{shard}}.log",
+    benchmark:
+        f"benchmarks/out/synthesize/nuscenes_{{shard}}.tsv"
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    shell:
+        SYNTHESIZE
+
+
+rule index_dataset:
+    """List every scan (and label) of a dataset per split, checking file sizes, so
+    later stages read one small JSON instead of walking the dataset."""
+    input:
+        lambda w: synthetic_shard_dirs(w.dataset) if is_synthetic(w.dataset) else [],
+    output:
+        f"{DATA}/index/{{dataset}}.json",
+    wildcard_constraints:
+        dataset=r"semantickitti|kitti360|pi3det|nuscenes",
+    params:
+        root=lambda w: dataset_root(w.dataset),
+        settings=lambda w: settings("datasets", w.dataset),
+        code=code("index-dataset"),
+    log:
+        f"logs/index/{{dataset}}.log",
+    benchmark:
+        f"benchmarks/out/index/{{dataset}}.tsv"
+    resources:
+        mem_mb=1000,
+        runtime=10,
+    shell:
+        "omnilidar index-dataset {wildcards.dataset} --root {params.root:q} --out {output} > {log} 2>&1"
+
+
+rule data_summary:
+    """Scene statistics of every dataset beside real KITTI (class frequencies,
+    points per scan, range and elevation profiles), with a figure."""
+    input:
+        expand(f"{DATA}/index/{{dataset}}.json", dataset=["semantickitti", "kitti360", "pi3det", "nuscenes"]),
+    output:
+        json="results/data_summary.json",
+        figure=report("results/figures/data_summary.png", caption="../workflow/report/data_summary.rst", category="Data"),
+    params:
+        settings=settings("data_summary"),
+        seed=config["seed"],
+        code=code("summarize-data"),
+    log:
+        "logs/data_summary.log",
+    benchmark:
+        "benchmarks/out/data_summary.tsv"
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    shell:
+        "omnilidar summarize-data {input} --settings {params.settings:q} --seed {params.seed} "
+        "--out {output.json} --figure {output.figure} > {log} 2>&1"
