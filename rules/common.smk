@@ -1,4 +1,4 @@
-# Helpers shared by all rule files: validated config, per-stage settings and code hashes.
+# Helpers shared by the workflow: validated config, per-stage settings, code hashes, shards.
 import json
 import sys
 
@@ -13,6 +13,8 @@ except InputError as err:
     sys.exit(f"Invalid configuration: {err}")
 
 DATA = config["data_dir"]
+# One software environment for every rule: the omnilidar package and its dependencies.
+ENV = "../workflow/envs/omnilidar.yaml"
 
 
 def settings(*keys):
@@ -37,3 +39,27 @@ def dataset_root(name):
 
 def is_synthetic(name):
     return config["datasets"][name]["root"] is None
+
+
+def synthetic_shards(name):
+    """Shard names (sequences, platforms or splits) the synthetic world writes for one dataset."""
+    spec = config["synthetic"]["datasets"][name]
+    if name == "semantickitti":
+        return [f"{int(s):02d}" for s in spec["sequences"]]
+    if name == "kitti360":
+        return [f"{int(s):04d}" for s in spec["sequences"]]
+    if name == "pi3det":
+        return list(spec["platforms"])
+    if name == "nuscenes":
+        return list(spec["splits"])
+    raise ValueError(f"unknown dataset {name}")
+
+
+def synthetic_shard_dirs(name):
+    pattern = {
+        "semantickitti": "{root}/sequences/{shard}",
+        "kitti360": "{root}/data_3d_raw/2013_05_28_drive_{shard}_sync",
+        "pi3det": "{root}/{shard}",
+        "nuscenes": "{root}/{shard}",
+    }[name]
+    return [pattern.format(root=f"{DATA}/synthetic/{name}", shard=s) for s in synthetic_shards(name)]

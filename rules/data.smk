@@ -10,30 +10,6 @@ SYNTHESIZE = (
 )
 
 
-def synthetic_shards(name):
-    """Shard names the synthetic world writes for one dataset."""
-    spec = config["synthetic"]["datasets"][name]
-    if name == "semantickitti":
-        return [f"{int(s):02d}" for s in spec["sequences"]]
-    if name == "kitti360":
-        return [f"{int(s):04d}" for s in spec["sequences"]]
-    if name == "pi3det":
-        return list(spec["platforms"])
-    if name == "nuscenes":
-        return list(spec["splits"])
-    raise ValueError(f"unknown dataset {name}")
-
-
-def synthetic_shard_dirs(name):
-    pattern = {
-        "semantickitti": "{root}/sequences/{shard}",
-        "kitti360": "{root}/data_3d_raw/2013_05_28_drive_{shard}_sync",
-        "pi3det": "{root}/{shard}",
-        "nuscenes": "{root}/{shard}",
-    }[name]
-    return [pattern.format(root=f"{SYNTH}/{name}", shard=s) for s in synthetic_shards(name)]
-
-
 rule synthesize_semantickitti:
     output:
         directory(f"{SYNTH}/semantickitti/sequences/{{shard}}"),
@@ -49,6 +25,8 @@ rule synthesize_semantickitti:
         f"logs/synthesize/semantickitti_{{shard}}.log",
     benchmark:
         f"benchmarks/out/synthesize/semantickitti_{{shard}}.tsv"
+    conda:
+        ENV
     resources:
         mem_mb=2000,
         runtime=30,
@@ -71,6 +49,8 @@ rule synthesize_kitti360:
         f"logs/synthesize/kitti360_{{shard}}.log",
     benchmark:
         f"benchmarks/out/synthesize/kitti360_{{shard}}.tsv"
+    conda:
+        ENV
     resources:
         mem_mb=2000,
         runtime=30,
@@ -93,6 +73,8 @@ rule synthesize_pi3det:
         f"logs/synthesize/pi3det_{{shard}}.log",
     benchmark:
         f"benchmarks/out/synthesize/pi3det_{{shard}}.tsv"
+    conda:
+        ENV
     resources:
         mem_mb=2000,
         runtime=30,
@@ -115,6 +97,8 @@ rule synthesize_nuscenes:
         f"logs/synthesize/nuscenes_{{shard}}.log",
     benchmark:
         f"benchmarks/out/synthesize/nuscenes_{{shard}}.tsv"
+    conda:
+        ENV
     resources:
         mem_mb=2000,
         runtime=30,
@@ -139,6 +123,8 @@ rule index_dataset:
         f"logs/index/{{dataset}}.log",
     benchmark:
         f"benchmarks/out/index/{{dataset}}.tsv"
+    conda:
+        ENV
     resources:
         mem_mb=1000,
         runtime=10,
@@ -162,6 +148,8 @@ rule data_summary:
         "logs/data_summary.log",
     benchmark:
         "benchmarks/out/data_summary.tsv"
+    conda:
+        ENV
     resources:
         mem_mb=4000,
         runtime=30,
