@@ -117,6 +117,7 @@ rule index_dataset:
         dataset=r"semantickitti|kitti360|pi3det|nuscenes",
     params:
         root=lambda w: dataset_root(w.dataset),
+        source=lambda w: "synthetic" if is_synthetic(w.dataset) else "real",
         settings=lambda w: settings("datasets", w.dataset),
         code=code("index-dataset"),
     log:
@@ -129,7 +130,8 @@ rule index_dataset:
         mem_mb=1000,
         runtime=10,
     shell:
-        "omnilidar index-dataset {wildcards.dataset} --root {params.root:q} --out {output} > {log} 2>&1"
+        "omnilidar index-dataset {wildcards.dataset} --root {params.root:q} --source {params.source} "
+        "--out {output} > {log} 2>&1"
 
 
 rule data_summary:

@@ -46,7 +46,7 @@ def test_data_summary_dag_has_one_job_per_shard(workdir, configfile):
 
 def test_embedded_default_job_counts_are_pinned(workdir):
     jobs = planned_jobs(workdir, "results/data_summary.json")
-    assert jobs["synthesize_semantickitti"] == 22  # sequences 00-21, official numbering
+    assert jobs["synthesize_semantickitti"] == 13  # sequences 00-12: train, val 08, two test
     assert jobs["index_dataset"] == 4
 
 
@@ -72,19 +72,27 @@ def test_slurm_profile_dry_run(workdir):
 
 
 @pytest.mark.slow
-def test_data_stage_runs_and_reruns_only_what_changed(tmp_path):
+def test_data_stage_runs_and_reruns_only_what_changed(tmp_path, real_data):
     wd = copy_workflow(tmp_path)
+    cfg = yaml.safe_load((wd / TINY).read_text())
+    cfg["data_summary"]["reference_scans"] = [str(p) for p in sorted(real_data.glob("kitti_object/velodyne/*.bin"))]
+    (wd / TINY).write_text(yaml.safe_dump(cfg))
     target = ("results/data_summary.json", "--configfile", TINY)
     snakemake(wd, *target)
     summary = yaml.safe_load((wd / "results" / "data_summary.json").read_text())
     assert summary["experiment"] == "data_summary"
+    assert summary["data_source"]["semantickitti"] == "synthetic"
+    real = summary["groups"]["real_kitti_reference"]["points_per_scan"]["mean"]
+    synthetic = summary["groups"]["semantickitti"]["points_per_scan"]["mean"]
+    assert 0.7 < synthetic / real < 1.3, "synthetic HDL-64 scans should hold about as many points as KITTI's"
     assert (wd / "results" / "figures" / "data_summary.png").stat().st_size > 1000
     assert planned_jobs(wd, *target) == {}, "a finished workflow plans nothing"
 
     # A comment and a docstring in the synthetic world's code: nothing reruns.
-    synth_files = sorted((wd / "omnilidar" / "data" / "synthetic").glob("*.py"))
-    f = synth_files[-1]
-    f.write_text('"""Edited docstring."""\n# an edited comment\n' + f.read_text())
+    f = wd / "omnilidar" / "data" / "synthetic" / "raycast.py"
+    text = f.read_text()
+    assert text.startswith('"""')
+    f.write_text(text.replace('"""', '"""Edited docstring. ', 1).replace("\n\n", "\n\n# an edited comment\n", 1))
     assert planned_jobs(wd, *target) == {}
 
     # Code of the index stage: index and summary rerun, generation does not.

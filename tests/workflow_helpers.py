@@ -37,7 +37,7 @@ def snakemake(workdir: Path, *args: str, check: bool = True) -> subprocess.Compl
 
 def planned_jobs(workdir: Path, *args: str) -> dict[str, int]:
     """Job counts per rule of a dry run (empty when nothing needs to run)."""
-    out = snakemake(workdir, "--dry-run", "--quiet", "rules", *args)
+    out = snakemake(workdir, "--dry-run", *args, "--quiet", "rules")
     text = out.stdout + out.stderr
     counts: dict[str, int] = {}
     block = text.split("Job stats:", 1)

@@ -43,12 +43,13 @@ def _entry(points: Path, labels: Path | None, record_bytes=16, label_bytes=4, **
     return {"points": str(points), "labels": None if labels is None else str(labels), "num_points": n, **extra}
 
 
-def index_semantickitti(root: Path) -> dict:
+def index_semantickitti(root: Path, missing: list) -> dict:
     splits = {}
     for split, sequences in semantickitti.SPLITS.items():
         entries = []
         for seq in sequences:
             if not (root / "sequences" / seq).is_dir():
+                missing.append(f"sequences/{seq}")
                 continue
             for bin_path, label_path in semantickitti.sequence_paths(root, seq):
                 if split != "test" and label_path is None:
@@ -58,18 +59,21 @@ def index_semantickitti(root: Path) -> dict:
     return splits
 
 
-def index_kitti360(root: Path) -> dict:
+def index_kitti360(root: Path, missing: list) -> dict:
     splits = {}
     for split, sequences in kitti360.SPLITS.items():
         entries = []
         for seq in sequences:
+            if not kitti360.scan_path(root, seq, 0).parent.is_dir():
+                missing.append(str(kitti360.scan_path(root, seq, 0).parent.relative_to(root)))
+                continue
             for path in kitti360.sequence_paths(root, seq):
                 entries.append(_entry(path, None, sequence=seq, frame=path.stem))
         splits[split] = entries
     return splits
 
 
-def index_pi3det(root: Path) -> dict:
+def index_pi3det(root: Path, missing: list) -> dict:
     splits = {}
     for infos_path in sorted(root.glob("*/*_infos_*.pkl")):
         platform, _, split = infos_path.stem.partition("_infos_")
@@ -83,7 +87,7 @@ def index_pi3det(root: Path) -> dict:
     return splits
 
 
-def index_nuscenes(root: Path) -> dict:
+def index_nuscenes(root: Path, missing: list) -> dict:
     # Layout written by the synthetic world (and accepted for real data converted
     # to it): <root>/<split>/samples/LIDAR_TOP/*.pcd.bin + lidarseg/<name>_lidarseg.bin.
     splits = {}
@@ -106,10 +110,13 @@ def build_index(dataset: str, root: str | Path) -> dict:
         raise InputError(None, f"unknown dataset {dataset!r}; known: {', '.join(DATASETS)}")
     if not root.is_dir():
         raise InputError(root, f"{dataset} root not found")
-    splits = globals()[f"index_{dataset}"](root)
+    # Official split members that are absent (a partial download, a small synthetic
+    # set) are listed in the index rather than silently skipped.
+    missing: list[str] = []
+    splits = globals()[f"index_{dataset}"](root, missing)
     if not any(splits.values()):
         raise InputError(root, f"no {dataset} scans found under this root")
-    return {"dataset": dataset, "root": str(root), "splits": splits}
+    return {"dataset": dataset, "root": str(root), "splits": splits, "missing": missing}
 
 
 def write_index(index: dict, path: str | Path) -> None:

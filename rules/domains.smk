@@ -1,0 +1,160 @@
+# Domain stage: build every configured domain as shards of range images and point
+# files, the SemanticKITTI-C-style corrupted sets, and the effect reports.
+
+DOMAINS = f"{DATA}/domains"
+CORRUPTED = f"{DATA}/semantickitti_c"
+# Keys of the domains section that are settings, not domains (omnilidar.domains.spec.SECTION_KEYS).
+DOMAIN_SECTION_KEYS = ("range_image", "corrupted", "fidelity", "tradeoff")
+DOMAIN_NAMES = [k for k in config["domains"] if k not in DOMAIN_SECTION_KEYS]
+
+
+# Every shard directory (one build_domain job each), every corrupted set, and the real
+# scans of the two reports; plain values, not functions (helpers live in common.smk).
+DOMAIN_SHARD_DIRS = [
+    f"{DOMAINS}/{name}/shard_{k}" for name in DOMAIN_NAMES for k in range(config["domains"][name]["num_shards"])
+]
+CORRUPTED_SET_DIRS = expand(
+    f"{CORRUPTED}/{{corruption}}/{{severity}}",
+    corruption=config["domains"]["corrupted"]["corruptions"],
+    severity=config["domains"]["corrupted"]["severities"],
+)
+FIDELITY_SCANS = config["domains"]["fidelity"]["scans"]
+TRADEOFF_SCANS = config["domains"]["tradeoff"]["scans"] or FIDELITY_SCANS[:1]
+
+
+rule build_domain:
+    """One shard of a domain: every num_shards-th scan of its source split, with the
+    domain's scene spec applied (per-scan seeds do not depend on the sharding)."""
+    input:
+        lambda w: f"{DATA}/index/{config['domains'][w.domain]['dataset']}.json",
+    output:
+        directory(f"{DOMAINS}/{{domain}}/shard_{{shard}}"),
+    wildcard_constraints:
+        domain="|".join(DOMAIN_NAMES),
+        shard=r"\d+",
+    params:
+        num_shards=lambda w: config["domains"][w.domain]["num_shards"],
+        settings=settings("domains"),
+        seed=config["seed"],
+        code=code("build-domain"),
+    log:
+        f"logs/domains/{{domain}}_{{shard}}.log",
+    benchmark:
+        f"benchmarks/out/domains/{{domain}}_{{shard}}.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=3000,
+        runtime=60,
+    shell:
+        "omnilidar build-domain {wildcards.domain} --index {input} --shard {wildcards.shard} "
+        "--num-shards {params.num_shards} --settings {params.settings:q} --seed {params.seed} "
+        "--out {output} > {log} 2>&1"
+
+
+rule domains_index:
+    """Which shard directories hold each domain, for the generator."""
+    input:
+        DOMAIN_SHARD_DIRS,
+    output:
+        f"{DOMAINS}/index.json",
+    params:
+        settings=settings("domains"),
+        code=code("domains-index"),
+    log:
+        "logs/domains/index.log",
+    benchmark:
+        "benchmarks/out/domains/index.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=500,
+        runtime=5,
+    shell:
+        "omnilidar domains-index --settings {params.settings:q} --out {output} {input} > {log} 2>&1"
+
+
+rule build_corrupted:
+    """One SemanticKITTI-C-style set: a corruption at a fixed severity on the val split."""
+    input:
+        f"{DATA}/index/{config['domains']['corrupted']['dataset']}.json",
+    output:
+        directory(f"{CORRUPTED}/{{corruption}}/{{severity}}"),
+    wildcard_constraints:
+        corruption=r"fog|wet_ground|snow|beam_missing",
+        severity=r"light|moderate|heavy",
+    params:
+        settings=settings("domains"),
+        seed=config["seed"],
+        code=code("build-corrupted"),
+    log:
+        f"logs/corrupted/{{corruption}}_{{severity}}.log",
+    benchmark:
+        f"benchmarks/out/corrupted/{{corruption}}_{{severity}}.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=3000,
+        runtime=60,
+    shell:
+        "omnilidar build-corrupted {wildcards.corruption} {wildcards.severity} --index {input} "
+        "--settings {params.settings:q} --seed {params.seed} --out {output} > {log} 2>&1"
+
+
+rule domain_fidelity:
+    """Per effect and severity on real scans: points changed, lost and added, weather-return
+    distributions, intensity shift and time per scan, beside the anchors' numbers."""
+    input:
+        FIDELITY_SCANS,
+    output:
+        json="results/domain_fidelity.json",
+        figure=report("results/figures/domain_fidelity.png", caption="../workflow/report/domain_fidelity.rst", category="Domains"),
+    params:
+        settings=settings("domains"),
+        seed=config["seed"],
+        code=code("domain-fidelity"),
+    log:
+        "logs/domain_fidelity.log",
+    benchmark:
+        "benchmarks/out/domain_fidelity.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    shell:
+        "omnilidar domain-fidelity --settings {params.settings:q} --seed {params.seed} "
+        "--out {output.json} --figure {output.figure} {input} > {log} 2>&1"
+
+
+rule effects_tradeoff:
+    """Error against time per scan for every numerical knob of every effect, defaults marked."""
+    input:
+        TRADEOFF_SCANS,
+    output:
+        json="results/effects_tradeoff.json",
+        figure=report("results/figures/effects_tradeoff.png", caption="../workflow/report/effects_tradeoff.rst", category="Domains"),
+    params:
+        settings=settings("domains"),
+        seed=config["seed"],
+        code=code("effects-tradeoff"),
+    log:
+        "logs/effects_tradeoff.log",
+    benchmark:
+        "benchmarks/out/effects_tradeoff.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=4000,
+        runtime=60,
+    shell:
+        "omnilidar effects-tradeoff --settings {params.settings:q} --seed {params.seed} "
+        "--out {output.json} --figure {output.figure} {input} > {log} 2>&1"
+
+
+rule domains:
+    """Every configured domain (and its index) and every corrupted set."""
+    input:
+        f"{DOMAINS}/index.json",
+        DOMAIN_SHARD_DIRS,
+        CORRUPTED_SET_DIRS,
