@@ -154,3 +154,27 @@ def test_bad_shapes_raise_input_error():
         encode(np.zeros((32, 1024), np.float32), np.zeros((32, 1024), np.float32), SPEC)
     with pytest.raises(InputError):
         decode(np.zeros((1, 64, 1024), np.float32), SPEC)
+
+
+def test_pitched_sensor_projects_in_its_own_frame():
+    """Drone scans are stored levelled; projection undoes the mount pitch so rows are beams."""
+    from omnilidar.data.range_image import RangeImageSpec, project, unproject
+    from omnilidar.data.sensors import PRESETS, sensor_to_levelled
+
+    sensor = PRESETS["drone_os64"]
+    spec = RangeImageSpec.from_sensor(sensor, width=256)
+    assert spec.pitch_deg == sensor.mount_pitch_deg != 0
+    el = sensor.elevations_rad[:, None]
+    az = np.linspace(-np.pi, np.pi, 256, endpoint=False)[None, :] + np.pi / 256
+    r = 20.0
+    xyz_sensor = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az),
+                           np.broadcast_to(r * np.sin(el), (64, 256))], -1).reshape(-1, 3)
+    pts = np.zeros((len(xyz_sensor), 4), np.float32)
+    pts[:, :3] = sensor_to_levelled(xyz_sensor, sensor.mount_pitch_deg)
+    res = project(pts, spec)
+    assert res.mask.all(), "every beam x column pixel gets its return"
+    np.testing.assert_array_equal(res.point_row, np.repeat(np.arange(64), 256))
+    back = unproject(res.range_img, res.intensity_img, spec)
+    assert np.abs(np.linalg.norm(back[:, :3], axis=1) - r).max() < 1e-3
+    # Back in the levelled frame: the lowest beam looks down by fov_down + pitch.
+    assert back[:, 2].min() < -r * np.sin(np.deg2rad(40.0))

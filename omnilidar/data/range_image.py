@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
+from omnilidar.data.sensors import SensorSpec, levelled_to_sensor, sensor_to_levelled
 from omnilidar.errors import InputError
 
 _F32_MAX = float(np.finfo(np.float32).max)
@@ -53,6 +53,9 @@ class RangeImageSpec:
     fov_down_deg: float
     min_range: float
     max_range: float
+    # Nose-down tilt of the sensor in the (gravity-levelled) frame the points are
+    # stored in: scans are projected in the sensor's own frame, so rows are beams.
+    pitch_deg: float = 0.0
 
     def __post_init__(self):
         for name in ("height", "width"):
@@ -60,7 +63,7 @@ class RangeImageSpec:
             if isinstance(value, bool) or int(value) != value or value < 1:
                 raise InputError(None, f"range image spec: {name} must be a positive integer, got {value!r}")
             object.__setattr__(self, name, int(value))
-        for name in ("fov_up_deg", "fov_down_deg", "min_range", "max_range"):
+        for name in ("fov_up_deg", "fov_down_deg", "min_range", "max_range", "pitch_deg"):
             value = float(getattr(self, name))
             if not np.isfinite(value):
                 raise InputError(None, f"range image spec: {name} must be finite, got {value!r}")
@@ -87,6 +90,7 @@ class RangeImageSpec:
             fov_down_deg=sensor.fov_down_deg,
             min_range=sensor.min_range,
             max_range=sensor.max_range,
+            pitch_deg=sensor.mount_pitch_deg,
         )
 
     @property
@@ -179,6 +183,7 @@ def project(points: np.ndarray, spec: RangeImageSpec, intensity_scale: float = 1
     xyz = pts[:, :3].astype(np.float64)
     if not finite.all():
         xyz[~finite] = 0.0  # keep trig quiet; these points are flagged invalid below
+    xyz = levelled_to_sensor(xyz, spec.pitch_deg)
     x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     rho = np.sqrt(x * x + y * y)  # squares of float32-range values cannot overflow float64
     rng = np.sqrt(rho * rho + z * z)
@@ -291,6 +296,8 @@ def unproject(
     out[:, 0] = horiz * np.cos(az)
     out[:, 1] = horiz * np.sin(az)
     out[:, 2] = dist * np.sin(el)
+    if spec.pitch_deg != 0.0:
+        out[:, :3] = sensor_to_levelled(out[:, :3].astype(np.float64), spec.pitch_deg)
     inten = np.clip(np.nan_to_num(np.asarray(i, np.float64)[rows, cols], nan=0.0), 0.0, 1.0)
     out[:, 3] = inten * scale
     return out

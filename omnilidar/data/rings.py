@@ -27,7 +27,7 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
+from omnilidar.data.sensors import SensorSpec, levelled_to_sensor
 from omnilidar.errors import InputError
 
 # Hough search over the per-laser height offset h (metres).
@@ -42,14 +42,16 @@ _REFINE_ITERS = 3
 _CHUNK = 16384
 
 
-def _elevation_points(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """finite mask, s = 1 / max(rho, floor), y = z / max(rho, floor) (float64)."""
+def _elevation_points(points: np.ndarray, pitch_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """finite mask, s = 1 / max(rho, floor), y = z / max(rho, floor) (float64), in the
+    sensor's own frame (levelled points of a pitched sensor are rotated back)."""
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] not in (3, 4, 5):
         raise InputError(None, f"recover_rings: points must be (N, 3|4|5), got shape {pts.shape}")
     xyz = pts[:, :3].astype(np.float64)
     finite = np.isfinite(xyz).all(axis=1)
     xyz[~finite] = 0.0
+    xyz = levelled_to_sensor(xyz, pitch_deg)
     rho = np.maximum(np.hypot(xyz[:, 0], xyz[:, 1]), _RHO_FLOOR)
     return finite, 1.0 / rho, xyz[:, 2] / rho
 
@@ -242,7 +244,7 @@ def recover_rings(points: np.ndarray, sensor: SensorSpec, calibrate: bool = True
     beam angle decides. Points closer than 0.5 m horizontally are treated as at
     0.5 m. Points with a non-finite coordinate get -1.
     """
-    finite, s, y = _elevation_points(points)
+    finite, s, y = _elevation_points(points, sensor.mount_pitch_deg)
     rings = np.full(len(s), -1, np.int16)
     if not finite.any():
         return rings

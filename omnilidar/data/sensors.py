@@ -34,6 +34,10 @@ class SensorSpec:
         projection (R2DM convention; KITTI uses +3 / -25 deg for 64 rows).
     mount_height: sensor height above the ground plane (m).
     mount_pitch_deg: nose-down pitch of the sensor (positive tilts beams down).
+        Scans are stored in the gravity-levelled frame centred at the sensor (x
+        along the platform heading, z up), so that 7-DoF boxes stay valid; range
+        images and ring recovery rotate them into the sensor's own frame
+        (``levelled_to_sensor``). For level mounts both frames coincide.
     min_range / max_range: valid returns (m); the projection masks outside them.
     intensity_scale: the dataset's intensity unit (1.0 for KITTI's 0..1,
         255.0 for nuScenes' 0..255). Effects convert to 0..1 physical
@@ -73,6 +77,22 @@ class SensorSpec:
         """
         step = 2.0 * np.pi / self.azimuth_steps
         return np.pi - (np.arange(self.azimuth_steps) + 0.5) * step
+
+
+def levelled_to_sensor(xyz: np.ndarray, pitch_deg: float) -> np.ndarray:
+    """Rotate (N, 3) points from the levelled frame into a sensor pitched nose-down by
+    ``pitch_deg`` (positive tilts the sensor's +x axis down); identity at 0."""
+    if pitch_deg == 0.0:
+        return xyz
+    p = np.deg2rad(pitch_deg)
+    c, s = np.cos(p), np.sin(p)
+    x, z = xyz[:, 0], xyz[:, 2]
+    return np.stack([c * x - s * z, xyz[:, 1], s * x + c * z], axis=1)
+
+
+def sensor_to_levelled(xyz: np.ndarray, pitch_deg: float) -> np.ndarray:
+    """Inverse of :func:`levelled_to_sensor`."""
+    return levelled_to_sensor(xyz, -pitch_deg)
 
 
 # Presets. Parameter choices (see README "Sensors"):
