@@ -1,0 +1,119 @@
+"""Generator speed: training step time and sampling time per scan, per sampler and step count.
+
+    python benchmarks/bench_generator.py                 # embedded default config on this machine
+    python benchmarks/bench_generator.py --paper --device cuda --batch 16 \
+        --samplers ddpm:256 dpmpp_2m:32                  # paper scale on a GPU (the paper: 3.52 s/frame, H100)
+
+Prints medians over --repeats runs and the ratio of each sampler setting to the first one.
+Random weights and random prompt tokens: speed does not depend on them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import statistics
+import time
+
+import torch
+
+from omnilidar.config import section_defaults
+from omnilidar.generator.sampling import generate
+from omnilidar.generator.training import make_diffusion_model
+from omnilidar.generator.unet import build_denoiser, count_parameters
+
+PAPER = {
+    "range_image": {"height": 64, "width": 1024},
+    "model": {"base_channels": 64, "channel_multipliers": [1, 2, 4, 8], "num_res_blocks": 3,
+              "cross_attention_levels": [1, 2, 3], "cdfm_levels": [2, 3], "mamba": {"d_state": 16}},
+}
+
+
+def _merge(base, patch):
+    for k, v in patch.items():
+        if isinstance(v, dict):
+            _merge(base[k], v)
+        else:
+            base[k] = v
+    return base
+
+
+def _sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--paper", action="store_true", help="paper-scale architecture and 64x1024 images")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--batch", type=int, default=None, help="batch size (default: the config's)")
+    ap.add_argument("--train-steps", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--samplers", nargs="*", default=["ddpm:20", "ddim:20", "dpmpp_2m:10", "dpmpp_2m:20", "dpmpp_2m:50"],
+                    help="name:steps pairs")
+    ap.add_argument("--bf16", action="store_true", help="bf16 autocast (CUDA)")
+    args = ap.parse_args()
+
+    device = torch.device(args.device)
+    settings = copy.deepcopy(section_defaults("generator"))
+    if args.paper:
+        _merge(settings, PAPER)
+    h, w = settings["range_image"]["height"], settings["range_image"]["width"]
+    b_train = args.batch or settings["training"]["batch_size"]
+    b_sample = args.batch or settings["sampling"]["batch_size"]
+    text_dim, n_tok, n_dom = 384, 16, 8
+    torch.manual_seed(0)
+    den = build_denoiser(settings, text_dim, n_dom).to(device)
+    print(f"config: {'paper' if args.paper else 'embedded default'} {h}x{w}, "
+          f"{count_parameters(den) / 1e6:.2f} M parameters, device {device}, threads {torch.get_num_threads()}")
+
+    tokens = torch.randn(n_dom * 3, n_tok, text_dim)
+    mask = torch.ones(n_dom * 3, n_tok, dtype=torch.bool)
+    model = make_diffusion_model(den, settings, tokens, mask, seed=0).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    batch = {
+        "image": (torch.rand(b_train, 2, h, w) * 2 - 1).to(device),
+        "domain": torch.arange(b_train, device=device) % n_dom,
+        "prompt": torch.arange(b_train, device=device) % (n_dom * 3),
+    }
+    times = []
+    for i in range(args.train_steps + 1):
+        _sync(device)
+        t0 = time.perf_counter()
+        model.iteration = i
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.bf16):
+            loss = model(**batch)["loss"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        _sync(device)
+        if i:  # the first step warms up allocators and kernels
+            times.append(time.perf_counter() - t0)
+    step = statistics.median(times)
+    print(f"train step (batch {b_train}): median {step:.3f} s  -> {settings['training']['iterations']} "
+          f"iterations ~ {step * settings['training']['iterations'] / 60:.1f} min")
+    del opt, model
+
+    den.eval()
+    base = None
+    for spec in args.samplers:
+        name, steps = spec.split(":")
+        steps = int(steps)
+        runs = []
+        for r in range(args.repeats):
+            _sync(device)
+            t0 = time.perf_counter()
+            generate(den, 0, tokens[0], mask[0], list(range(r * b_sample, (r + 1) * b_sample)), (h, w),
+                     sampler=name, steps=steps, autocast_bf16=args.bf16)
+            _sync(device)
+            runs.append((time.perf_counter() - t0) / b_sample)
+        per_scan = statistics.median(runs)
+        base = base or per_scan
+        print(f"sample {name:>8} {steps:4d} steps (batch {b_sample}): median {per_scan:.3f} s/scan  "
+              f"ratio {per_scan / base:.2f}")
+
+
+if __name__ == "__main__":
+    main()

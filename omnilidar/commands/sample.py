@@ -1,0 +1,36 @@
+"""omnilidar sample: generate one shard of scans for one domain (resumable, atomic)."""
+
+from __future__ import annotations
+
+from omnilidar.commands._common import seed_arg, settings_arg
+
+HELP = "sample a shard of range images + SemanticKITTI point clouds for one domain from a trained generator"
+
+
+def add_arguments(parser) -> None:
+    settings_arg(parser)
+    seed_arg(parser)
+    parser.add_argument("--checkpoint", required=True, help="generator weights from train-generator")
+    parser.add_argument("--prompts", required=True, help="prompt cache from encode-prompts")
+    parser.add_argument("--domain", required=True, help="domain name (as in the domains index)")
+    parser.add_argument("--shard", type=int, required=True, help="shard number K: scans K*N .. K*N+N-1")
+    parser.add_argument("--scans-per-shard", type=int, default=None, help="N (default: sampling.scans_per_shard)")
+    parser.add_argument("--out", required=True, help="shard directory (appears only when complete)")
+
+
+def run(args) -> int:
+    from omnilidar.config import validate
+    from omnilidar.generator.sampling import resolve_device, sample_shard
+    from omnilidar.generator.text import load_prompt_cache
+    from omnilidar.generator.training import load_generator
+
+    settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
+    sampling = settings["sampling"]
+    n = args.scans_per_shard or sampling["scans_per_shard"]
+    device = resolve_device(sampling["device"])
+    denoiser, payload = load_generator(args.checkpoint, device=device)
+    cache = load_prompt_cache(args.prompts)
+    stats = sample_shard(denoiser, payload, cache, args.domain, args.shard, n, sampling, args.seed, args.out)
+    print(f"{args.domain} shard {args.shard}: {stats['generated']} generated, {stats['skipped']} reused, "
+          f"{stats['seconds']:.1f} s -> {args.out}")
+    return 0

@@ -1,0 +1,36 @@
+"""The paper's six ablation configurations as patches of the ``generator`` section.
+
+The patches live in ``workflow/schemas/generator.schema.yaml`` under ``presets``
+(single_domain, batch_homogeneous, cdts, cdts_cdfm, cdts_dafs, full), next to the
+keys they switch, so there is one source of truth.
+"""
+
+from __future__ import annotations
+
+import copy
+
+from omnilidar.config import _load_schema, validate
+from omnilidar.errors import InputError
+
+
+def ablation_presets() -> dict[str, dict]:
+    """{preset name: patch} in the paper's table order."""
+    return copy.deepcopy(_load_schema("generator.schema.yaml")["presets"])
+
+
+def _merge(base: dict, patch: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in patch.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def apply_preset(settings: dict, name: str) -> dict:
+    """A validated copy of ``settings`` with preset ``name`` merged in."""
+    presets = ablation_presets()
+    if name not in presets:
+        raise InputError(None, f"unknown generator preset {name!r} (known: {', '.join(presets)})")
+    return validate(_merge(settings, presets[name]), "generator.schema.yaml", source=f"<generator preset {name}>")

@@ -1,0 +1,170 @@
+"""Sharded, resumable, batched sampling of range images and point clouds.
+
+A shard is scans ``[shard * N, (shard + 1) * N)`` of one domain. Scan ``g`` (global
+index) gets its own seed derived from (seed, crc32(domain name), g), and its own
+torch generator for the initial noise and every ancestral step, so a scan's
+result does not depend on the shard size, the batch size, or which scans were
+already on disk. Each scan is written as
+
+    DIR/range/%06d.npz       key "image": (2, H, W) float32 in [-1, 1]
+    DIR/velodyne/%06d.bin    float32 x, y, z, intensity (SemanticKITTI layout)
+
+named by its global index. Work goes into ``DIR.partial``; scans already there are
+skipped (resume after interruption), every file is written atomically, and only a
+complete shard is renamed to ``DIR``.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from omnilidar.errors import InputError
+from omnilidar.generator.data import rng_for
+from omnilidar.generator.samplers import make_scheduler
+from omnilidar.generator.schedule import CosineLogSNRSchedule
+
+
+def scan_seed(seed: int, domain: str, index: int) -> int:
+    """The per-scan seed of global scan ``index`` of ``domain``."""
+    return int(rng_for(seed, zlib.crc32(domain.encode()), index).integers(2**63 - 1))
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise InputError(None, f"sampling.device {name}: CUDA is not available")
+    return torch.device(name)
+
+
+@torch.no_grad()
+def generate(
+    denoiser: torch.nn.Module,
+    domain_index: int,
+    tokens: torch.Tensor,
+    mask: torch.Tensor,
+    seeds: list[int],
+    shape: tuple[int, int],
+    sampler: str = "dpmpp_2m",
+    steps: int = 20,
+    schedule: CosineLogSNRSchedule | None = None,
+    ddim_eta: float = 0.0,
+    autocast_bf16: bool = False,
+) -> torch.Tensor:
+    """Sample one batch: len(seeds) range images (B, 2, H, W) in [-1, 1], float32 on CPU.
+
+    ``tokens`` (T, D) and ``mask`` (T,) are the domain's (first) prompt.
+    """
+    device = next(denoiser.parameters()).device
+    kwargs = {"eta": ddim_eta} if sampler == "ddim" else {}
+    sched = make_scheduler(sampler, schedule or CosineLogSNRSchedule(), **kwargs)
+    sched.set_timesteps(steps)
+    gens = []
+    for s in seeds:
+        g = torch.Generator(device=device)
+        g.manual_seed(s)
+        gens.append(g)
+    b = len(seeds)
+    x = torch.stack([torch.randn((2, *shape), generator=g, device=device) for g in gens])
+    dom = torch.full((b,), int(domain_index), dtype=torch.long, device=device)
+    tok = tokens.to(device).float().expand(b, -1, -1)
+    msk = mask.to(device).bool().expand(b, -1)
+    for t in sched.timesteps:
+        logsnr = sched.logsnr_at(t).to(device).expand(b)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast_bf16):
+            eps = denoiser(x, logsnr, dom, tok, msk)
+        eps = torch.nan_to_num(eps.float(), nan=0.0, posinf=0.0, neginf=0.0)
+        x = sched.step(eps, t, x, generator=gens).prev_sample
+    return x.clamp(-1.0, 1.0).float().cpu()
+
+
+def _save_npz_atomic(path: Path, image: np.ndarray) -> None:
+    from omnilidar.io.atomic import write_bytes_atomic
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, image=image)
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def sample_shard(
+    denoiser: torch.nn.Module,
+    payload: dict,
+    prompt_cache: dict,
+    domain: str,
+    shard: int,
+    scans_per_shard: int,
+    sampling: dict,
+    seed: int,
+    out_dir: str | Path,
+    log=print,
+) -> dict:
+    """Generate one shard into ``out_dir`` (via ``out_dir.partial``); return timing stats."""
+    from omnilidar.data.range_image import decode, unproject
+    from omnilidar.io.semantickitti import write_points
+    from omnilidar.generator.unet import range_image_spec
+
+    settings = payload["config"]
+    names = payload["domains"]
+    if domain not in names:
+        raise InputError(None, f"unknown domain {domain!r}; the generator knows {', '.join(names)}")
+    if domain not in prompt_cache["domains"]:
+        raise InputError(None, f"prompt cache has no prompts for domain {domain!r}")
+    if int(prompt_cache["dim"]) != int(payload["text"]["dim"]):
+        raise InputError(None, f"prompt cache is {prompt_cache['dim']}-d, the generator was trained on {payload['text']['dim']}-d")
+    if shard < 0 or scans_per_shard < 1:
+        raise InputError(None, f"need shard >= 0 and scans per shard >= 1, got {shard}, {scans_per_shard}")
+    out_dir = Path(out_dir)
+    if out_dir.exists():
+        log(f"{out_dir} is complete; nothing to do")
+        return {"generated": 0, "skipped": scans_per_shard, "seconds": 0.0}
+    partial = out_dir.with_name(out_dir.name + ".partial")
+    (partial / "range").mkdir(parents=True, exist_ok=True)
+    (partial / "velodyne").mkdir(parents=True, exist_ok=True)
+
+    spec = range_image_spec(settings)
+    d = settings["diffusion"]
+    schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
+    entry = prompt_cache["domains"][domain]
+    tokens, mask = entry["tokens"][0], entry["mask"][0]  # inference uses the first prompt
+    device = next(denoiser.parameters()).device
+    bf16 = device.type == "cuda" and bool(settings["training"].get("bf16", False))
+
+    first = shard * scans_per_shard
+    todo = [
+        g for g in range(first, first + scans_per_shard)
+        if not ((partial / "range" / f"{g:06d}.npz").exists() and (partial / "velodyne" / f"{g:06d}.bin").exists())
+    ]
+    skipped = scans_per_shard - len(todo)
+    if skipped:
+        log(f"resuming {partial}: {skipped} scans already written")
+    t0 = time.perf_counter()
+    bs = int(sampling["batch_size"])
+    for start in range(0, len(todo), bs):
+        batch = todo[start : start + bs]
+        images = generate(
+            denoiser, names.index(domain), tokens, mask, [scan_seed(seed, domain, g) for g in batch],
+            spec.shape, sampling["sampler"], sampling["steps"], schedule, sampling["ddim_eta"], bf16,
+        ).numpy()
+        for g, img in zip(batch, images):
+            if not np.isfinite(img).all():  # cannot happen after clamp/nan_to_num; never write one
+                raise RuntimeError(f"non-finite sample for scan {g}")
+            rng, inten, valid = decode(img, spec)
+            write_points(partial / "velodyne" / f"{g:06d}.bin", unproject(rng, inten, spec, mask=valid))
+            _save_npz_atomic(partial / "range" / f"{g:06d}.npz", img.astype(np.float32))
+        done = start + len(batch)
+        elapsed = time.perf_counter() - t0
+        eta = elapsed / done * (len(todo) - done)
+        log(f"{domain} shard {shard}: {done}/{len(todo)} scans, {elapsed / done:.2f} s/scan, ETA {eta:.0f} s")
+    seconds = time.perf_counter() - t0
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(partial, out_dir)
+    return {"generated": len(todo), "skipped": skipped, "seconds": seconds}

@@ -1,0 +1,360 @@
+"""Generator training with mmengine's Runner.
+
+What the Runner provides here: the iteration loop, AdamW through an optimizer
+wrapper (gradient clipping; ``AmpOptimWrapper`` with bf16 autocast on CUDA), a
+linear warm-up, EMA of the weights (``EMAHook``), resumable checkpoints in the
+work directory, DDP when launched with torchrun (``launcher="pytorch"``) and log
+lines with loss, learning rate, time per step and ETA.
+
+Checkpoints stay loadable with ``torch.load(weights_only=True)`` (torch >= 2.6's
+default), so resuming needs no exception to the safe loader: mmengine pickles its
+message hub (``HistoryBuffer`` objects, whose pickles reference bound methods,
+and numpy arrays and scalars), which :class:`WeightsOnlyCheckpointHook` converts to
+plain tensors, dicts and Python numbers in ``before_save_checkpoint`` and back in
+``after_load_checkpoint``. Each checkpoint also carries the resolved generator
+config (``meta["omnilidar_config"]``).
+
+Resuming: the work directory is keyed by a hash of the resolved config and seed,
+so an interrupted run resumes from its last checkpoint and a changed config starts
+afresh. The batch samplers are deterministic streams; on resume the first k
+batches are empty (no data is read) while mmengine fast-forwards its loader.
+Training noise (t and epsilon) comes from a generator seeded by
+(seed, rank, iteration), so a resumed run draws the same noise it would have drawn.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from omnilidar.errors import InputError
+from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
+from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight
+from omnilidar.generator.text import load_prompt_cache, stack_prompts
+from omnilidar.generator.unet import build_denoiser, count_parameters
+
+CHECKPOINT_FORMAT = "omnilidar-generator/1"
+_TAG = "__omnilidar_type__"
+
+
+# Keys that do not change what one training step computes: a run whose config differs
+# only in these resumes the same work directory (e.g. extending ``iterations``).
+_RESUMABLE_KEYS = ("iterations", "checkpoint_interval", "keep_checkpoints", "log_interval", "num_workers")
+
+
+def config_hash(settings: dict, seed: int) -> str:
+    """Short content hash of what determines the training trajectory (config and seed)."""
+    relevant = {k: v for k, v in settings.items() if k != "sampling"}
+    relevant["training"] = {k: v for k, v in settings["training"].items() if k not in _RESUMABLE_KEYS}
+    blob = json.dumps({"settings": relevant, "seed": int(seed)}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+
+
+# --------------------------------------------------------------------------- model
+
+
+def _mm():
+    """mmengine pieces, imported lazily (the CLI must stay light)."""
+    from mmengine.model import BaseModel
+
+    return BaseModel
+
+
+def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, prompt_mask: torch.Tensor, seed: int):
+    """Wrap a denoiser into an mmengine model whose ``loss`` mode is the diffusion objective."""
+    BaseModel = _mm()
+
+    class DiffusionModel(BaseModel):
+        """Epsilon-prediction loss with min-SNR-gamma weighting at t ~ U(0, 1)."""
+
+        def __init__(self):
+            super().__init__()
+            self.denoiser = denoiser
+            d = settings["diffusion"]
+            self.schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
+            self.gamma = float(d["min_snr_gamma"])
+            self.register_buffer("prompt_tokens", prompt_tokens.float(), persistent=False)
+            self.register_buffer("prompt_mask", prompt_mask.bool(), persistent=False)
+            self.seed = int(seed)
+            self.iteration = 0  # set by IterationHook before every step
+
+        def forward(self, image=None, domain=None, prompt=None, mode: str = "loss"):
+            if mode != "loss":
+                raise ValueError(f"DiffusionModel supports mode='loss' only, got {mode!r}")
+            from mmengine.dist import get_rank
+
+            b = image.shape[0]
+            gen = torch.Generator(device=image.device)
+            gen.manual_seed(int(rng_for(self.seed, get_rank(), self.iteration).integers(2**63 - 1)))
+            t = torch.rand(b, generator=gen, device=image.device, dtype=torch.float32)
+            eps = torch.randn(image.shape, generator=gen, device=image.device, dtype=torch.float32)
+            logsnr = self.schedule.logsnr(t)
+            alpha, sigma = alpha_sigma(logsnr)
+            x_t = alpha[:, None, None, None] * image.float() + sigma[:, None, None, None] * eps
+            pred = self.denoiser(x_t, logsnr, domain, self.prompt_tokens[prompt], self.prompt_mask[prompt])
+            per_scan = (pred.float() - eps).square().mean(dim=(1, 2, 3))
+            loss = (min_snr_weight(logsnr, self.gamma) * per_scan).mean()
+            return {"loss": loss}
+
+    return DiffusionModel()
+
+
+# --------------------------------------------------------------------------- hooks
+
+
+def _to_plain(obj):
+    """Replace HistoryBuffers and numpy values by tagged dicts of tensors / Python numbers."""
+    from mmengine.logging import HistoryBuffer
+
+    if isinstance(obj, HistoryBuffer):
+        log, count = obj.data
+        return {
+            _TAG: "HistoryBuffer",
+            "log_history": torch.from_numpy(np.asarray(log, dtype=np.float64).copy()),
+            "count_history": torch.from_numpy(np.asarray(count, dtype=np.float64).copy()),
+            "max_length": int(obj.max_length),
+        }
+    if isinstance(obj, np.ndarray):
+        if obj.dtype == object:
+            raise TypeError("object arrays cannot be stored in a weights-only checkpoint")
+        return {_TAG: "ndarray", "data": torch.from_numpy(np.ascontiguousarray(obj).copy())}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, dict):
+        return {k: _to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_to_plain(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(_to_plain(v) for v in obj)
+    return obj
+
+
+def _from_plain(obj):
+    """Inverse of :func:`_to_plain`."""
+    from mmengine.logging import HistoryBuffer
+
+    if isinstance(obj, dict):
+        tag = obj.get(_TAG)
+        if tag == "HistoryBuffer":
+            return HistoryBuffer(
+                obj["log_history"].numpy().tolist(), obj["count_history"].numpy().tolist(), obj["max_length"]
+            )
+        if tag == "ndarray":
+            return obj["data"].numpy()
+        return {k: _from_plain(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_from_plain(v) for v in obj]
+    if isinstance(obj, tuple):
+        return tuple(_from_plain(v) for v in obj)
+    return obj
+
+
+def make_hooks(settings: dict, domain_names: list[str], seed: int) -> list:
+    """Our custom hooks: weights-only-safe checkpoints (+ resolved config) and the step counter."""
+    from mmengine.hooks import Hook
+    from mmengine.model import is_model_wrapper
+
+    class WeightsOnlyCheckpointHook(Hook):
+        """Make checkpoints loadable with ``torch.load(weights_only=True)`` and carry the config."""
+
+        priority = "VERY_LOW"  # save: after EMAHook has added its state
+
+        def before_save_checkpoint(self, runner, checkpoint: dict) -> None:
+            for key in ("message_hub", "meta"):
+                if key in checkpoint:
+                    checkpoint[key] = _to_plain(checkpoint[key])
+            checkpoint["meta"]["omnilidar_config"] = settings
+            checkpoint["meta"]["omnilidar_domains"] = list(domain_names)
+            checkpoint["meta"]["omnilidar_seed"] = int(seed)
+
+        def after_load_checkpoint(self, runner, checkpoint: dict) -> None:
+            for key in ("message_hub", "meta"):
+                if key in checkpoint:
+                    checkpoint[key] = _from_plain(checkpoint[key])
+
+    class IterationHook(Hook):
+        """Tell the model the global step (its noise generator is keyed by it)."""
+
+        priority = "VERY_HIGH"
+
+        def before_train_iter(self, runner, batch_idx: int, data_batch=None) -> None:
+            model = runner.model.module if is_model_wrapper(runner.model) else runner.model
+            model.iteration = runner.iter
+
+    return [WeightsOnlyCheckpointHook(), IterationHook()]
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def _last_checkpoint(work_dir: Path) -> Path | None:
+    marker = work_dir / "last_checkpoint"
+    if not marker.exists():
+        return None
+    path = Path(marker.read_text().strip())
+    return path if path.exists() else None
+
+
+def _resume_iteration(path: Path) -> int:
+    ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    return int(ckpt["meta"]["iter"])
+
+
+def _dist_info() -> tuple[str, int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    return ("pytorch" if world > 1 else "none"), rank, world
+
+
+def train_generator(
+    settings: dict,
+    domains_index: str | Path,
+    prompts_path: str | Path,
+    work_dir: str | Path,
+    out: str | Path,
+    seed: int = 0,
+) -> dict:
+    """Train (or resume) the generator and write the final EMA weights + config to ``out``.
+
+    Returns a small summary (iterations, parameters, work dir). ``out`` is written
+    atomically on the main process only.
+    """
+    from mmengine.dist import is_main_process
+    from mmengine.hooks import EMAHook
+    from mmengine.runner import Runner
+
+    from omnilidar.io.atomic import atomic_path
+
+    tr = settings["training"]
+    h, w = settings["range_image"]["height"], settings["range_image"]["width"]
+    domains = read_domains_index(domains_index)
+    names = list(domains)
+    cache = load_prompt_cache(prompts_path)
+    tokens, mask, spans = stack_prompts(cache, names)
+    dataset = RangeImageDataset(domains, (h, w), spans)
+
+    run_dir = Path(work_dir) / config_hash(settings, seed)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    resume_from = _last_checkpoint(run_dir)
+    skip = _resume_iteration(resume_from) if resume_from else 0
+
+    launcher, rank, world = _dist_info()
+    sampler = make_batch_sampler(
+        tr["strategy"], dataset, tr["batch_size"], seed, tr["single_domain"], rank=rank, world_size=world, skip=skip
+    )
+    loader = torch.utils.data.DataLoader(
+        dataset, batch_sampler=sampler, collate_fn=collate, num_workers=tr["num_workers"],
+        persistent_workers=tr["num_workers"] > 0,
+    )
+
+    # Weight init from an explicit seed without touching the global RNG state.
+    init_seed = int(rng_for(seed, 0x1D17).integers(2**63 - 1))
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(init_seed)
+        denoiser = build_denoiser(settings, cache["dim"], len(names))
+    model = make_diffusion_model(denoiser, settings, tokens, mask, seed)
+
+    cuda = torch.cuda.is_available()
+    optimizer = dict(type="AdamW", lr=tr["lr"], betas=tuple(tr["betas"]), weight_decay=tr["weight_decay"])
+    optim_wrapper = dict(type="OptimWrapper", optimizer=optimizer)
+    if cuda and tr["bf16"]:
+        optim_wrapper = dict(type="AmpOptimWrapper", dtype="bfloat16", optimizer=optimizer)
+    if tr["grad_clip"] > 0:
+        optim_wrapper["clip_grad"] = dict(max_norm=tr["grad_clip"])
+    param_scheduler = None
+    if tr["warmup_iters"] > 0:
+        param_scheduler = [
+            # mmengine's LinearLR reaches end_factor at step end - 1
+            dict(type="LinearLR", start_factor=1e-3, by_epoch=False, begin=0, end=tr["warmup_iters"] + 1)
+        ]
+
+    runner = Runner(
+        model=model,
+        work_dir=str(run_dir),
+        train_dataloader=loader,
+        train_cfg=dict(by_epoch=False, max_iters=tr["iterations"], val_interval=tr["iterations"] + 1),
+        optim_wrapper=optim_wrapper,
+        param_scheduler=param_scheduler,
+        default_hooks=dict(
+            timer=dict(type="IterTimerHook"),
+            logger=dict(type="LoggerHook", interval=tr["log_interval"], log_metric_by_epoch=False),
+            param_scheduler=dict(type="ParamSchedulerHook"),
+            checkpoint=dict(
+                type="CheckpointHook",
+                interval=tr["checkpoint_interval"],
+                by_epoch=False,
+                max_keep_ckpts=tr["keep_checkpoints"],
+                save_last=True,
+            ),
+            sampler_seed=None,
+        ),
+        custom_hooks=[EMAHook(momentum=1.0 - tr["ema_decay"]), *make_hooks(settings, names, seed)],
+        launcher=launcher,
+        env_cfg=dict(cudnn_benchmark=False, dist_cfg=dict(backend="nccl" if cuda else "gloo")),
+        randomness=dict(seed=int(seed)),
+        resume=resume_from is not None,
+        load_from=str(resume_from) if resume_from else None,
+        log_processor=dict(by_epoch=False, window_size=tr["log_interval"]),
+        log_level="INFO",
+        default_scope="mmengine",
+    )
+    runner.logger.info(
+        f"omnilidar generator: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
+        f"{len(dataset)} scans, strategy {tr['strategy']}, {tr['iterations']} iterations"
+        + (f", resuming at iteration {skip} from {resume_from}" if resume_from else "")
+    )
+    runner.train()
+
+    ema = next(h for h in runner._hooks if isinstance(h, EMAHook)).ema_model.module
+    state = {k: v.detach().cpu().clone() for k, v in ema.denoiser.state_dict().items()}
+    summary = {
+        "iterations": int(runner.iter),
+        "parameters": count_parameters(denoiser),
+        "work_dir": str(run_dir),
+        "config_hash": run_dir.name,
+    }
+    if is_main_process():
+        payload = {
+            "format": CHECKPOINT_FORMAT,
+            "state_dict": state,
+            "config": settings,
+            "domains": names,
+            "text": {"encoder": cache["encoder"], "model": cache["model"], "dim": int(cache["dim"])},
+            "seed": int(seed),
+            **{k: v for k, v in summary.items() if k != "work_dir"},
+        }
+        with atomic_path(out) as tmp:
+            torch.save(payload, tmp)
+    logging.getLogger("mmengine").info(f"wrote {out}")
+    return summary
+
+
+def load_generator(path: str | Path, device: str | torch.device = "cpu", backend: str | None = None):
+    """Load a checkpoint written by :func:`train_generator` (weights-only); return (denoiser, payload).
+
+    ``backend`` overrides the Mamba backend (the state_dict is the same for both).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "generator checkpoint not found")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        raise InputError(path, f"not a readable generator checkpoint: {err}") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise InputError(path, f"not an omnilidar generator checkpoint ({CHECKPOINT_FORMAT})")
+    settings = json.loads(json.dumps(payload["config"]))
+    if backend is not None:
+        settings["model"]["mamba"]["backend"] = backend
+    denoiser = build_denoiser(settings, payload["text"]["dim"], len(payload["domains"]))
+    try:
+        denoiser.load_state_dict(payload["state_dict"], strict=True)
+    except RuntimeError as err:
+        raise InputError(path, f"weights do not match the stored config: {err}") from None
+    return denoiser.to(device).eval(), payload
