@@ -10,6 +10,8 @@ configfile: "config/config.yaml"
 
 include: "rules/common.smk"
 include: "rules/data.smk"
+include: "rules/domains.smk"
+include: "rules/generator.smk"
 
 
 rule all:

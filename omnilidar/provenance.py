@@ -93,36 +93,38 @@ def _parsed(path: Path) -> tuple[str, frozenset[Path]]:
     return ast.dump(_strip_docstrings(tree)), deps
 
 
-def module_closure(*modules: str) -> list[Path]:
-    """All package files reachable by imports from the given dotted modules."""
+def module_closure(*modules: str, exclude: tuple[str, ...] = ()) -> list[Path]:
+    """All package files reachable by imports from the given dotted modules,
+    not entering the ``exclude`` modules (e.g. effects a domain does not use)."""
     todo = [_module_file(m) for m in modules]
     # Importing a module runs its parent packages' __init__ too.
     todo += [_module_file(".".join(m.split(".")[:i])) for m in modules for i in range(1, m.count(".") + 1)]
     missing = [m for m, f in zip(modules, todo[: len(modules)]) if f is None]
     if missing:
         raise ValueError(f"no such package module: {', '.join(missing)}")
-    seen: set[Path] = set()
+    seen: set[Path] = {f for f in map(_module_file, exclude) if f is not None}
+    skipped = set(seen)
     while todo:
         f = todo.pop()
         if f is None or f in seen:
             continue
         seen.add(f)
         todo.extend(_parsed(f)[1] - seen)
-    return sorted(seen)
+    return sorted(seen - skipped)
 
 
-def code_hash(*modules: str) -> str:
+def code_hash(*modules: str, exclude: tuple[str, ...] = ()) -> str:
     """Content hash (16 hex digits) of the code the given modules run."""
     h = hashlib.sha256()
-    for f in module_closure(*modules):
+    for f in module_closure(*modules, exclude=exclude):
         h.update(str(f.relative_to(PACKAGE_DIR)).encode())
         h.update(_parsed(f)[0].encode())
     return h.hexdigest()[:16]
 
 
-def command_code_hash(command: str) -> str:
+def command_code_hash(command: str, exclude: tuple[str, ...] = ()) -> str:
     """Code hash of one ``omnilidar`` subcommand (``omnilidar.commands.<name>``)."""
-    return code_hash(f"{PACKAGE}.commands.{command.replace('-', '_')}")
+    return code_hash(f"{PACKAGE}.commands.{command.replace('-', '_')}", exclude=exclude)
 
 
 def config_hash(section) -> str:

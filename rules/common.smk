@@ -17,12 +17,16 @@ DATA = config["data_dir"]
 ENV = "../workflow/envs/omnilidar.yaml"
 
 
-def settings(*keys):
+def settings(*keys, drop=()):
     """A config section as one JSON string: Snakemake compares params by value
-    repr, so the whole section travels as one value and any change reruns."""
+    repr, so the whole section travels as one value and any change reruns.
+    ``drop`` leaves out subsections the stage never reads (e.g. sampling
+    settings for training), so changing them does not rerun it."""
     node = config
     for key in keys:
         node = node[key]
+    if drop:
+        node = {k: v for k, v in node.items() if k not in drop}
     return json.dumps(node, sort_keys=True)
 
 
@@ -63,3 +67,49 @@ def synthetic_shard_dirs(name):
         "nuscenes": "{root}/{shard}",
     }[name]
     return [pattern.format(root=f"{DATA}/synthetic/{name}", shard=s) for s in synthetic_shards(name)]
+
+
+def sample_shards(domain):
+    """Sample shard directories of one domain (scans_per_domain split into shards)."""
+    sampling = config["generator"]["sampling"]
+    count = -(-sampling["scans_per_domain"] // sampling["scans_per_shard"])
+    return [f"{DATA}/samples/{domain}/shard_{k}" for k in range(count)]
+
+
+# Keys of the domains section that are settings, not domains (omnilidar.domains.spec).
+DOMAIN_SECTION_KEYS = ("range_image", "corrupted", "fidelity", "tradeoff")
+DOMAIN_NAMES = [k for k in config["domains"] if k not in DOMAIN_SECTION_KEYS]
+EFFECT_MODULES = ("beam_missing", "beam_reduction", "fog", "rain", "snow", "wet_ground")
+
+
+def domain_label(name):
+    """The domain's label (its name in the domains index and the prompt pools)."""
+    return config["domains"][name]["label"]
+
+
+def domain_settings(name):
+    """What one domain's build reads: its own entry and the image geometry, so that
+    editing another domain's effects does not rebuild this one."""
+    section = config["domains"]
+    return json.dumps({"range_image": section["range_image"], name: section[name]}, sort_keys=True)
+
+
+def domain_code(name):
+    """Code hash of build-domain without the effect modules this domain does not use."""
+    used = {effect["name"] for effect in config["domains"][name]["effects"]}
+    unused = tuple(f"omnilidar.domains.effects.{m}" for m in EFFECT_MODULES if m not in used)
+    return command_code_hash("build-domain", exclude=unused)
+
+
+def _check_image_geometry():
+    built = config["domains"]["range_image"]
+    trained = config["generator"]["range_image"]
+    if (built["height"], built["width"]) != (trained["height"], trained["width"]):
+        sys.exit(
+            "Invalid configuration: domains.range_image is "
+            f"{built['height']}x{built['width']} but generator.range_image is "
+            f"{trained['height']}x{trained['width']}; the generator trains on the built images, set both alike."
+        )
+
+
+_check_image_geometry()

@@ -3,9 +3,6 @@
 
 DOMAINS = f"{DATA}/domains"
 CORRUPTED = f"{DATA}/semantickitti_c"
-# Keys of the domains section that are settings, not domains (omnilidar.domains.spec.SECTION_KEYS).
-DOMAIN_SECTION_KEYS = ("range_image", "corrupted", "fidelity", "tradeoff")
-DOMAIN_NAMES = [k for k in config["domains"] if k not in DOMAIN_SECTION_KEYS]
 
 
 # Every shard directory (one build_domain job each), every corrupted set, and the real
@@ -34,9 +31,9 @@ rule build_domain:
         shard=r"\d+",
     params:
         num_shards=lambda w: config["domains"][w.domain]["num_shards"],
-        settings=settings("domains"),
+        settings=lambda w: domain_settings(w.domain),
         seed=config["seed"],
-        code=code("build-domain"),
+        code=lambda w: domain_code(w.domain),
     log:
         f"logs/domains/{{domain}}_{{shard}}.log",
     benchmark:

@@ -75,3 +75,12 @@ def test_real_commands_hash_and_unknown_module_fails():
 def test_config_hash_ignores_key_order_but_not_values():
     assert provenance.config_hash({"a": 1, "b": 2}) == provenance.config_hash({"b": 2, "a": 1})
     assert provenance.config_hash({"a": 1, "b": 2}) != provenance.config_hash({"a": 2, "b": 1})
+
+
+def test_excluded_modules_are_neither_hashed_nor_followed(package_copy):
+    files = {p.name for p in provenance.module_closure("omnilidar.commands.stage", exclude=("omnilidar.core",))}
+    assert "core.py" not in files and "helpers.py" in files
+    before = provenance.command_code_hash("stage", exclude=("omnilidar.core",))
+    (package_copy / "core.py").write_text("def f():\n    return 5\n")
+    provenance._parsed.cache_clear()
+    assert provenance.command_code_hash("stage", exclude=("omnilidar.core",)) == before

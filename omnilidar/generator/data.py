@@ -72,6 +72,8 @@ def read_domains_index(path: str | Path) -> dict[str, dict]:
         if not files:
             raise InputError(path, f"domain {name}: no .npz range images under its shards")
         out[name] = {"id": entry["id"], "files": files}
+        if isinstance(entry.get("range_image"), dict):  # the geometry the builder used
+            out[name]["range_image"] = entry["range_image"]
     return dict(sorted(out.items(), key=lambda kv: kv[1]["id"]))
 
 

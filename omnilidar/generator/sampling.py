@@ -107,7 +107,7 @@ def sample_shard(
     log=print,
 ) -> dict:
     """Generate one shard into ``out_dir`` (via ``out_dir.partial``); return timing stats."""
-    from omnilidar.data.range_image import decode, unproject
+    from omnilidar.data.range_image import RangeImageSpec, decode, unproject
     from omnilidar.io.semantickitti import write_points
     from omnilidar.generator.unet import range_image_spec
 
@@ -130,6 +130,12 @@ def sample_shard(
     (partial / "velodyne").mkdir(parents=True, exist_ok=True)
 
     spec = range_image_spec(settings)
+    # Back-project with the geometry of the domain's own sensor (e.g. the pitched
+    # drone) when the checkpoint knows it; the image shape is the generator's.
+    geometry = payload.get("domain_range_images", {}).get(domain)
+    points_spec = RangeImageSpec(**geometry) if geometry else spec
+    if points_spec.shape != spec.shape:
+        raise InputError(None, f"domain {domain}: images are {points_spec.shape}, the generator makes {spec.shape}")
     d = settings["diffusion"]
     schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
     entry = prompt_cache["domains"][domain]
@@ -156,8 +162,8 @@ def sample_shard(
         for g, img in zip(batch, images):
             if not np.isfinite(img).all():  # cannot happen after clamp/nan_to_num; never write one
                 raise RuntimeError(f"non-finite sample for scan {g}")
-            rng, inten, valid = decode(img, spec)
-            write_points(partial / "velodyne" / f"{g:06d}.bin", unproject(rng, inten, spec, mask=valid))
+            rng, inten, valid = decode(img, points_spec)
+            write_points(partial / "velodyne" / f"{g:06d}.bin", unproject(rng, inten, points_spec, mask=valid))
             _save_npz_atomic(partial / "range" / f"{g:06d}.npz", img.astype(np.float32))
         done = start + len(batch)
         elapsed = time.perf_counter() - t0

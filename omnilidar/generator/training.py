@@ -325,6 +325,9 @@ def train_generator(
             "state_dict": state,
             "config": settings,
             "domains": names,
+            # Per-domain image geometry (sensor field of view, pitch, range limits)
+            # from the domains index, for back-projecting samples.
+            "domain_range_images": {n: domains[n]["range_image"] for n in names if "range_image" in domains[n]},
             "text": {"encoder": cache["encoder"], "model": cache["model"], "dim": int(cache["dim"])},
             "seed": int(seed),
             **{k: v for k, v in summary.items() if k != "work_dir"},

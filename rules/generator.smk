@@ -1,0 +1,90 @@
+# Generator stage: encode the domain prompts once, train the diffusion model on all
+# built domains, and sample every domain as parallel shard jobs.
+
+GENERATOR = f"{DATA}/generator"
+ABLATION_PRESETS = list(config["generator"]["presets"]) if "presets" in config["generator"] else []
+
+
+rule encode_prompts:
+    """Token embeddings of every prompt, cached so training never loads the text encoder."""
+    output:
+        f"{GENERATOR}/prompts.pt",
+    params:
+        # Only the encoder and the prompt pools matter here.
+        settings=json.dumps({k: config["generator"][k] for k in ("text", "prompts")}, sort_keys=True),
+        code=code("encode-prompts"),
+    log:
+        "logs/generator/encode_prompts.log",
+    benchmark:
+        "benchmarks/out/generator/encode_prompts.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=4000,
+        runtime=20,
+    shell:
+        "omnilidar encode-prompts --settings {params.settings:q} --out {output} > {log} 2>&1"
+
+
+rule train_generator:
+    """Train the generator (a preset of the paper's ablation; `full` is OmniLiDAR).
+    Resumable state lives in work/generator/<preset>, which is not a declared output."""
+    input:
+        domains=f"{DATA}/domains/index.json",
+        prompts=rules.encode_prompts.output,
+    output:
+        f"{GENERATOR}/{{preset}}/model.pt",
+    params:
+        settings=settings("generator", drop=("sampling",)),
+        seed=config["seed"],
+        work_dir=lambda w: f"work/generator/{w.preset}",
+        code=code("train-generator"),
+    log:
+        "logs/generator/train_{preset}.log",
+    benchmark:
+        "benchmarks/out/generator/train_{preset}.tsv"
+    conda:
+        ENV
+    resources:
+        gpu=1,
+        mem_mb=32000,
+        runtime=24 * 60,
+    shell:
+        "omnilidar train-generator --domains {input.domains} --prompts {input.prompts} "
+        "--preset {wildcards.preset} --settings {params.settings:q} --seed {params.seed} "
+        "--work-dir {params.work_dir} --out {output} > {log} 2>&1"
+
+
+rule sample_domain:
+    """One shard of generated scans of one domain (range images + SemanticKITTI points)."""
+    input:
+        checkpoint=f"{GENERATOR}/full/model.pt",
+        prompts=rules.encode_prompts.output,
+    output:
+        directory(f"{DATA}/samples/{{domain}}/shard_{{shard}}"),
+    wildcard_constraints:
+        shard=r"\d+",
+    params:
+        settings=settings("generator"),
+        seed=config["seed"],
+        code=code("sample"),
+    log:
+        "logs/samples/{domain}_{shard}.log",
+    benchmark:
+        "benchmarks/out/samples/{domain}_{shard}.tsv"
+    conda:
+        ENV
+    resources:
+        gpu=1,
+        mem_mb=16000,
+        runtime=6 * 60,
+    shell:
+        "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
+        "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "
+        "--seed {params.seed} --out {output} > {log} 2>&1"
+
+
+rule samples:
+    """Every domain's samples."""
+    input:
+        [shard for name in DOMAIN_NAMES for shard in sample_shards(domain_label(name))],

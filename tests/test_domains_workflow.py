@@ -1,0 +1,87 @@
+"""The domain stage in the workflow: DAG shape of the `domains` target, only the
+needed sources per domain, and a tiny real run of one domain shard."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from ground_scenes import make_scene
+from omnilidar.config import section_defaults
+from omnilidar.data.sensors import PRESETS
+from omnilidar.domains.spec import domain_names
+from omnilidar.io import semantickitti
+from workflow_helpers import copy_workflow, planned_jobs, snakemake
+
+
+def _with_domain_stage(workdir):
+    """Wire rules/domains.smk into the copy if the checkout does not yet."""
+    snakefile = workdir / "Snakefile"
+    text = snakefile.read_text()
+    if "rules/domains.smk" not in text:
+        text = text.replace('include: "rules/data.smk"\n', 'include: "rules/data.smk"\ninclude: "rules/domains.smk"\n')
+        snakefile.write_text(text)
+    schema = workdir / "workflow" / "schemas" / "config.schema.yaml"
+    doc = yaml.safe_load(schema.read_text())
+    if "domains" not in doc["properties"]:
+        schema.write_text(schema.read_text().rstrip("\n") + "\n  domains:\n    $ref: domains.schema.yaml\n")
+    return workdir
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    return _with_domain_stage(copy_workflow(tmp_path_factory.mktemp("wf_domains")))
+
+
+def test_domains_target_builds_every_shard_and_corrupted_set(workdir):
+    jobs = planned_jobs(workdir, "domains")
+    cfg = section_defaults("domains")
+    shards = sum(cfg[name]["num_shards"] for name in domain_names(cfg))
+    assert len(domain_names(cfg)) == 8
+    assert jobs["build_domain"] == shards == 16
+    assert jobs["build_corrupted"] == len(cfg["corrupted"]["corruptions"]) * len(cfg["corrupted"]["severities"]) == 12
+    assert jobs["domains_index"] == 1 and jobs["domains"] == 1
+    # Only the two sources the domains read are indexed.
+    assert jobs["index_dataset"] == 2
+    assert "synthesize_kitti360" not in jobs and "synthesize_nuscenes" not in jobs
+
+
+def test_a_domain_needs_only_its_own_source(workdir):
+    fog = planned_jobs(workdir, "data/domains/fog/shard_1")
+    assert fog["build_domain"] == 1 and fog["index_dataset"] == 1
+    assert "synthesize_pi3det" not in fog and "build_corrupted" not in fog
+    drone = planned_jobs(workdir, "data/domains/drone/shard_0")
+    assert drone["build_domain"] == 1 and "synthesize_semantickitti" not in drone
+    assert drone["synthesize_pi3det"] >= 1
+
+
+def test_tiny_real_run_of_one_domain_shard(workdir, tmp_path):
+    # A real (not synthesized) SemanticKITTI root with two train scans.
+    root = tmp_path / "skitti"
+    seq = root / "sequences" / "00"
+    (seq / "velodyne").mkdir(parents=True)
+    (seq / "labels").mkdir()
+    kitti = PRESETS["kitti_hdl64e"]
+    for i in range(2):
+        scan = make_scene(kitti, np.random.default_rng(30 + i), azimuth_steps=256)
+        semantickitti.write_scan(scan, seq / "velodyne" / f"{i:06d}.bin", seq / "labels" / f"{i:06d}.label")
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(yaml.safe_dump({
+        "datasets": {"semantickitti": {"root": str(root)}},
+        "domains": {"range_image": {"width": 256}, "fog": {"num_shards": 1, "max_scans": 2}},
+    }))
+    target = "data/domains/fog/shard_0"
+    snakemake(workdir, target, "--configfile", str(cfg))
+    shard = workdir / target
+    side = json.loads((shard / "sidecar.json").read_text())
+    assert [s["name"] for s in side["scans"]] == ["000000", "000001"]
+    assert sorted(p.name for p in (shard / "range").iterdir()) == ["000000.npz", "000001.npz"]
+    with np.load(shard / "range" / "000000.npz") as data:
+        assert data["image"].shape == (2, 64, 256)
+    log = (workdir / "logs" / "domains" / "fog_0.log").read_text()
+    assert log.startswith("$ omnilidar build-domain fog")
+    assert (workdir / "benchmarks" / "out" / "domains" / "fog_0.tsv").is_file()
+    assert planned_jobs(workdir, target, "--configfile", str(cfg)) == {}  # nothing left to do
