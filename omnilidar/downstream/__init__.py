@@ -1,0 +1,1 @@
+"""Downstream perception models trained on real and generated scans."""

@@ -1,0 +1,1 @@
+"""LiDAR semantic segmentation: voxelisation, MinkUNet and SPVCNN."""

@@ -1,0 +1,178 @@
+"""SPVCNN: MinkUNet's voxel trunk plus a full-resolution point branch.
+
+Point features are read from the voxel trunk by trilinear devoxelisation at
+strides 1 (after the stem), 16 (encoder bottom), 4 (after two up stages) and 1
+(decoder top). Between reads, point MLPs (Linear-BN-ReLU: stem -> enc[-1],
+enc[-1] -> dec[1], dec[1] -> dec[3]; 32->256, 256->128, 128->96 for W32) carry
+the previous point features forward and are added to the fresh reads. Point
+features go back to voxels by averaging the points of each voxel, with dropout
+0.3 before the two later up stages. The classifier runs on points.
+
+Trilinear weights use voxel centres: at stride ``s`` a point at ``p`` (stride-1
+voxel units) sits between the 8 voxels around ``p / s - 0.5``; absent
+neighbours get weight 0 and the rest are renormalised (the point's own voxel is
+always present, so the sum is never 0).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from omnilidar.downstream.seg.minkunet import NUM_SEG_CLASSES, UNetTrunk, concat, init_weights, network_input
+from omnilidar.downstream.seg.voxelize import SegBatch
+from omnilidar.sparse.kernel_map import KeyTable
+from omnilidar.sparse.tensor import SparseTensor, pack_coords
+
+_CORNERS = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=torch.int64)
+
+
+def _lookup(x: SparseTensor, batch_idx: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+    """Row of ``x`` at each (batch, cell) or -1; cells may lie outside the grid."""
+    shape = torch.tensor(x.spatial_shape, device=cells.device)
+    inside = ((cells >= 0) & (cells < shape)).all(-1)
+    safe = torch.where(inside[..., None], cells, torch.zeros_like(cells))
+    rows = torch.cat([batch_idx[..., None], safe], -1).reshape(-1, 4)
+    found = KeyTable(pack_coords(x.coords, x.spatial_shape)).find(pack_coords(rows, x.spatial_shape))
+    found = found.reshape(cells.shape[:-1])
+    return torch.where(inside, found, torch.full_like(found, -1))
+
+
+def trilinear_weights(x: SparseTensor, points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Neighbour rows ``(P, 8)`` (-1 absent) and weights ``(P, 8)`` of the points.
+
+    ``points``: ``(P, 4)`` float batch, position in stride-1 voxel units.
+    """
+    u = points[:, 1:].double() / stride - 0.5
+    base = torch.floor(u)
+    frac = (u - base).float()
+    cells = base.long()[:, None, :] + _CORNERS.to(points.device)  # (P, 8, 3)
+    batch_idx = points[:, 0].long()[:, None].expand(-1, 8)
+    rows = _lookup(x, batch_idx, cells)
+    corner = _CORNERS.to(points.device).bool()
+    w = torch.where(corner, frac[:, None, :], 1 - frac[:, None, :]).prod(-1)  # (P, 8)
+    w = torch.where(rows >= 0, w, torch.zeros_like(w))
+    w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
+    return rows, w
+
+
+def devoxelize(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Point features ``(P, C)`` interpolated from voxel features."""
+    # One corner at a time: never materialises a (P, 8, C) tensor.
+    w = weights.to(x.feats.dtype)
+    out = None
+    for k in range(rows.shape[1]):
+        term = x.feats.index_select(0, rows[:, k].clamp_min(0)) * w[:, k, None]
+        out = term if out is None else out + term
+    return out
+
+
+def point_voxel_rows(x: SparseTensor, points: torch.Tensor, stride: int) -> torch.Tensor:
+    """Row of ``x`` holding each point's own voxel at ``stride``."""
+    cells = torch.floor(points[:, 1:].double() / stride).long()
+    rows = _lookup(x, points[:, 0].long(), cells)
+    if (rows < 0).any():
+        raise ValueError(f"{int((rows < 0).sum())} points have no voxel at stride {stride}")
+    return rows
+
+
+def voxelize_points(x: SparseTensor, point_feats: torch.Tensor, rows: torch.Tensor) -> SparseTensor:
+    """Mean of the point features of each voxel of ``x`` (0 for voxels without points)."""
+    total = point_feats.new_zeros((x.num_voxels, point_feats.shape[1])).index_add_(0, rows, point_feats)
+    count = torch.bincount(rows, minlength=x.num_voxels).clamp_min(1).to(point_feats.dtype)
+    return x.replace_feats(total / count[:, None])
+
+
+class SeededDropout(nn.Module):
+    """Dropout whose masks come from the module's own seeded generator.
+
+    The stream restarts from ``seed`` on every device it first sees; with
+    ``reseed`` a trainer can tie it to its own generator.
+    """
+
+    def __init__(self, p: float, seed: int):
+        super().__init__()
+        if not 0.0 <= p < 1.0:
+            raise ValueError(f"dropout probability must be in [0, 1), got {p}")
+        self.p = float(p)
+        self.seed = int(seed)
+        self._generators: dict[str, torch.Generator] = {}
+
+    def reseed(self, seed: int) -> None:
+        self.seed = int(seed)
+        self._generators.clear()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.training or self.p == 0.0:
+            return x
+        key = str(x.device)
+        if key not in self._generators:
+            self._generators[key] = torch.Generator(device=x.device).manual_seed(self.seed)
+        keep = torch.rand(x.shape, generator=self._generators[key], device=x.device) >= self.p
+        return x * keep.to(x.dtype) / (1.0 - self.p)
+
+    def extra_repr(self) -> str:
+        return f"p={self.p}, seed={self.seed}"
+
+
+def point_mlp(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(cin, cout), nn.BatchNorm1d(cout), nn.ReLU())
+
+
+class SPVCNN(nn.Module):
+    """Sparse point-voxel CNN; ``forward(batch)`` returns per-point logits ``(P, 19)``."""
+
+    def __init__(self, in_channels: int = 4, num_classes: int = NUM_SEG_CLASSES, width: str = "W32",
+                 depth: int = 18, dropout: float = 0.3, backend: str = "auto",
+                 device: str | torch.device = "cpu", generator: torch.Generator | None = None):
+        super().__init__()
+        self.trunk = UNetTrunk(in_channels, width, depth, backend, device)
+        stem, enc, dec = self.trunk.stem_channels, self.trunk.encoder_channels, self.trunk.decoder_channels
+        self.point_mlps = nn.ModuleList([point_mlp(stem, enc[-1]), point_mlp(enc[-1], dec[1]),
+                                         point_mlp(dec[1], dec[3])])
+        self.classifier = nn.Linear(dec[3], num_classes)
+        init_weights(self, generator)
+        # Dropout draws from its own stream, seeded from the init generator.
+        seed = int(torch.randint(0, 2**62, (1,), generator=generator)) if generator is not None else 0
+        self.dropout = SeededDropout(dropout, seed)
+
+    @property
+    def backend(self) -> str:
+        return self.trunk.backend
+
+    def forward(self, batch: SegBatch) -> torch.Tensor:
+        t = self.trunk
+        pts = batch.point_coords
+        x0 = t.stem(network_input(batch))
+        interp = {}  # stride -> (rows, weights); stride 1 is read twice
+
+        def read(x: SparseTensor, stride: int) -> torch.Tensor:
+            if stride not in interp:
+                interp[stride] = trilinear_weights(x, pts, stride)
+            return devoxelize(x, *interp[stride])
+
+        z0 = read(x0, 1)
+        x = voxelize_points(x0, z0, batch.point_to_voxel)  # stride 1: the points' own voxels
+        skips = [x]
+        for stage in t.encoder:
+            x = stage(x)
+            skips.append(x)
+        z1 = read(x, 16) + self.point_mlps[0](z0)
+        x = voxelize_points(x, z1, point_voxel_rows(x, pts, 16))
+        x = x.replace_feats(self.dropout(x.feats))
+        for i in range(2):
+            x = t.fuse[i](concat(t.up[i](x), skips[3 - i]))
+        z2 = read(x, 4) + self.point_mlps[1](z1)
+        x = voxelize_points(x, z2, point_voxel_rows(x, pts, 4))
+        x = x.replace_feats(self.dropout(x.feats))
+        for i in range(2, 4):
+            x = t.fuse[i](concat(t.up[i](x), skips[3 - i]))
+        z3 = read(x, 1) + self.point_mlps[2](z2)
+        return self.classifier(z3)
+
+
+def spvcnn(variant: str = "W32", **kwargs) -> SPVCNN:
+    """Build ``W16``, ``W20``, ``W32`` (depth 18) or ``SPVCNN34`` (W32, deeper encoder)."""
+    if variant == "SPVCNN34":
+        return SPVCNN(width="W32", depth=34, **kwargs)
+    return SPVCNN(width=variant, depth=18, **kwargs)

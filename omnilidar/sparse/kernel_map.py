@@ -1,0 +1,166 @@
+"""Kernel maps: which input voxel feeds which output voxel through which weight.
+
+A kernel map lists, for every kernel offset ``k`` (flattened in the weight's
+``kD, kH, kW`` order), the pairs ``(in_idx, out_idx)`` with
+``out[out_idx] += feats[in_idx] @ W[k]``. For every convolution type here a
+given output receives at most one input per offset and a given input feeds at
+most one output per offset, so within one offset both index lists are free of
+duplicates. That is what makes the gather-GEMM-scatter of :mod:`.conv`
+deterministic: no two writes of one offset ever hit the same row.
+
+Coordinates are packed into int64 keys (:func:`.tensor.pack_coords`) and looked
+up in a sorted key table with a vectorised binary search
+(:class:`KeyTable`): deterministic, allocation-light, and the same on CPU and
+GPU.
+
+Geometry follows ``torch.nn.functional.conv3d`` (cross-correlation, no kernel
+flip, the spconv convention):
+
+- submanifold: ``out[i] = sum_k W[k] x[i + (k - centre) * dilation]``,
+  outputs on the input coordinates;
+- strided: ``out[o] = sum_k W[k] x[o * stride - padding + k * dilation]``,
+  outputs on every grid cell of ``[0, out_shape)`` that some input reaches;
+- inverse (transposed): the strided map with inputs and outputs swapped,
+  outputs back on the strided conv's input coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+
+import torch
+
+from omnilidar.sparse.tensor import pack_coords, unpack_keys
+
+
+def _triple(value) -> tuple[int, int, int]:
+    if isinstance(value, int):
+        return (value, value, value)
+    value = tuple(int(v) for v in value)
+    if len(value) != 3:
+        raise ValueError(f"expected an int or 3 ints, got {value}")
+    return value
+
+
+def kernel_offsets(kernel_size, device=None) -> torch.Tensor:
+    """``(K, 3)`` int64 kernel positions in weight order (kD major, kW minor)."""
+    ks = _triple(kernel_size)
+    grid = list(product(range(ks[0]), range(ks[1]), range(ks[2])))
+    return torch.tensor(grid, dtype=torch.int64, device=device).reshape(-1, 3)
+
+
+class KeyTable:
+    """Lookup of packed int64 coordinate keys -> row index (or -1 if absent)."""
+
+    def __init__(self, keys: torch.Tensor):
+        self.sorted_keys, self.order = torch.sort(keys)
+
+    def find(self, queries: torch.Tensor) -> torch.Tensor:
+        if self.sorted_keys.numel() == 0:
+            return torch.full_like(queries, -1)
+        pos = torch.searchsorted(self.sorted_keys, queries)
+        pos = pos.clamp_(max=self.sorted_keys.numel() - 1)
+        hit = self.sorted_keys[pos] == queries
+        return torch.where(hit, self.order[pos], torch.full_like(pos, -1))
+
+
+@dataclass(frozen=True)
+class KernelMap:
+    """Pairs of one sparse convolution, grouped by kernel offset.
+
+    in_idx, out_idx: int64 ``(P,)``; offset ``k`` owns ``bounds[k]:bounds[k+1]``.
+    identity: the offset whose pairs are exactly ``i -> i`` for every row (the
+        submanifold centre), which the convolution applies without gathering.
+    """
+
+    in_idx: torch.Tensor
+    out_idx: torch.Tensor
+    bounds: tuple[int, ...]
+    num_in: int
+    num_out: int
+    identity: int | None = None
+
+    @property
+    def kernel_volume(self) -> int:
+        return len(self.bounds) - 1
+
+    def segments(self):
+        """Yield ``(k, in_idx_k, out_idx_k)`` for every offset with pairs."""
+        for k in range(self.kernel_volume):
+            a, b = self.bounds[k], self.bounds[k + 1]
+            if b > a:
+                yield k, self.in_idx[a:b], self.out_idx[a:b]
+
+    def transposed(self) -> "KernelMap":
+        """The map of the inverse convolution (outputs become inputs)."""
+        return KernelMap(self.out_idx, self.in_idx, self.bounds, self.num_out, self.num_in, self.identity)
+
+
+def _bounds(counts: torch.Tensor) -> tuple[int, ...]:
+    return tuple([0] + torch.cumsum(counts, 0).tolist())
+
+
+def submanifold_map(coords: torch.Tensor, spatial_shape, kernel_size=3, dilation=1) -> KernelMap:
+    """Kernel map of a submanifold convolution (outputs = input coordinates).
+
+    The kernel size must be odd on every axis so that it has a centre.
+    """
+    ks, dil = _triple(kernel_size), _triple(dilation)
+    if any(k % 2 == 0 for k in ks):
+        raise ValueError(f"submanifold convolution needs an odd kernel size, got {ks}")
+    n = coords.shape[0]
+    device = coords.device
+    shape = torch.tensor(spatial_shape, dtype=torch.int64, device=device)
+    centre = torch.tensor([k // 2 for k in ks], dtype=torch.int64, device=device)
+    offs = (kernel_offsets(ks, device) - centre) * torch.tensor(dil, device=device)  # (K, 3)
+    c = coords.long()
+    table = KeyTable(pack_coords(c, spatial_shape))
+    query = c[None, :, 1:] + offs[:, None, :]  # (K, N, 3)
+    inside = ((query >= 0) & (query < shape)).all(-1)
+    batch = c[:, 0].expand(offs.shape[0], n)
+    keys = pack_coords(torch.cat([batch[..., None], query], -1).reshape(-1, 4), spatial_shape)
+    found = table.find(keys).reshape(offs.shape[0], n)
+    found = torch.where(inside, found, torch.full_like(found, -1))
+    valid = found >= 0
+    out_idx = torch.arange(n, device=device).expand_as(found)[valid]
+    in_idx = found[valid]
+    identity = (offs.shape[0] - 1) // 2  # the centre of an odd kernel, flattened
+    return KernelMap(in_idx, out_idx, _bounds(valid.sum(1)), n, n, identity)
+
+
+def strided_output_shape(spatial_shape, kernel_size, stride, padding, dilation) -> tuple[int, int, int]:
+    """Output grid size, as for ``conv3d``."""
+    ks, st, pd, dl = (_triple(v) for v in (kernel_size, stride, padding, dilation))
+    out = tuple((s + 2 * p - d * (k - 1) - 1) // t + 1 for s, k, t, p, d in zip(spatial_shape, ks, st, pd, dl))
+    if min(out) < 1:
+        raise ValueError(f"spatial_shape {tuple(spatial_shape)} too small for kernel {ks}, stride {st}")
+    return out
+
+
+def strided_map(
+    coords: torch.Tensor, spatial_shape, kernel_size=2, stride=2, padding=0, dilation=1
+) -> tuple[KernelMap, torch.Tensor, tuple[int, int, int]]:
+    """Kernel map of a regular (strided) sparse convolution.
+
+    Returns the map, the output coordinates (int32, sorted batch-major) and the
+    output grid size. Every output cell reached by some input is active.
+    """
+    ks, st, pd, dl = (_triple(v) for v in (kernel_size, stride, padding, dilation))
+    out_shape = strided_output_shape(spatial_shape, ks, st, pd, dl)
+    n = coords.shape[0]
+    device = coords.device
+    c = coords.long()
+    offs = kernel_offsets(ks, device) * torch.tensor(dl, device=device)  # (K, 3)
+    kvol = offs.shape[0]
+    step = torch.tensor(st, dtype=torch.int64, device=device)
+    num = c[None, :, 1:] + torch.tensor(pd, device=device) - offs[:, None, :]  # (K, N, 3)
+    o = torch.div(num, step, rounding_mode="floor")
+    valid = ((o * step == num) & (o >= 0) & (o < torch.tensor(out_shape, device=device))).all(-1)
+    batch = c[:, 0].expand(kvol, n)
+    out_keys = pack_coords(torch.cat([batch[..., None], o], -1)[valid], out_shape)
+    uniq, out_idx = torch.unique(out_keys, sorted=True, return_inverse=True)
+    in_idx = torch.arange(n, device=device).expand(kvol, n)[valid]
+    out_coords = unpack_keys(uniq, out_shape)
+    kmap = KernelMap(in_idx, out_idx.reshape(-1), _bounds(valid.sum(1)), n, int(uniq.numel()))
+    return kmap, out_coords, out_shape
