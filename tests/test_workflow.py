@@ -65,20 +65,49 @@ def test_unknown_config_key_fails_before_any_job(workdir, tmp_path):
     assert "synthetic_typo" in out.stdout + out.stderr
 
 
-def test_slurm_profile_dry_run(workdir):
-    out = snakemake(workdir, "--dry-run", "results/data_summary.json", "--workflow-profile",
-                    "workflow/profiles/slurm")
-    assert "synthesize_semantickitti" in out.stdout + out.stderr
+def test_slurm_profile_asks_gpus_for_gpu_rules_only(workdir):
+    out = snakemake(workdir, "--dry-run", "samples", "--workflow-profile", "workflow/profiles/slurm")
+    text = out.stdout + out.stderr
+    jobs = re.split(r"\n(?=\[.*\]\n\s*rule |rule )", text)
+    resources = {}
+    for block in jobs:
+        rule = re.search(r"rule (\w+):", block)
+        res = re.search(r"resources: (.*)", block)
+        if rule and res:
+            resources.setdefault(rule.group(1), res.group(1))
+    assert "gpu=1" in resources["train_generator"] and "gpu=1" in resources["sample_domain"]
+    assert "gpu" not in resources["synthesize_semantickitti"] and "gpu" not in resources["build_domain"]
+    assert "slurm_account=" in resources["train_generator"]
+
+
+def test_generator_dag_shards_sampling(workdir):
+    config = load_config(workdir / "config" / "config.yaml")
+    jobs = planned_jobs(workdir, "samples")
+    sampling = config["generator"]["sampling"]
+    shards = -(-sampling["scans_per_domain"] // sampling["scans_per_shard"])
+    assert jobs["train_generator"] == 1 and jobs["encode_prompts"] == 1
+    assert jobs["sample_domain"] == 8 * shards
+    assert jobs["build_domain"] == sum(config["domains"][d]["num_shards"] for d in config["domains"]
+                                       if "num_shards" in config["domains"][d])
+
+
+def _edit_config(wd, change):
+    cfg = yaml.safe_load((wd / TINY).read_text())
+    change(cfg)
+    (wd / TINY).write_text(yaml.safe_dump(cfg))
 
 
 @pytest.mark.slow
-def test_data_stage_runs_and_reruns_only_what_changed(tmp_path, real_data):
+def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path, real_data):
+    """One real run of data, domains, generator and sampling on the tiny config,
+    then dry runs after each kind of change (settings, code, comments)."""
     wd = copy_workflow(tmp_path)
-    cfg = yaml.safe_load((wd / TINY).read_text())
-    cfg["data_summary"]["reference_scans"] = [str(p) for p in sorted(real_data.glob("kitti_object/velodyne/*.bin"))]
-    (wd / TINY).write_text(yaml.safe_dump(cfg))
-    target = ("results/data_summary.json", "--configfile", TINY)
+    original = (wd / TINY).read_text()
+    _edit_config(wd, lambda c: c["data_summary"].update(
+        reference_scans=[str(p) for p in sorted(real_data.glob("kitti_object/velodyne/*.bin"))]))
+    target = ("results/data_summary.json", "samples", "--configfile", TINY)
     snakemake(wd, *target)
+
     summary = yaml.safe_load((wd / "results" / "data_summary.json").read_text())
     assert summary["experiment"] == "data_summary"
     assert summary["data_source"]["semantickitti"] == "synthetic"
@@ -86,33 +115,58 @@ def test_data_stage_runs_and_reruns_only_what_changed(tmp_path, real_data):
     synthetic = summary["groups"]["semantickitti"]["points_per_scan"]["mean"]
     assert 0.7 < synthetic / real < 1.3, "synthetic HDL-64 scans should hold about as many points as KITTI's"
     assert (wd / "results" / "figures" / "data_summary.png").stat().st_size > 1000
+    assert len(list((wd / "data" / "samples" / "Drone" / "shard_0" / "velodyne").glob("*.bin"))) == 2
     assert planned_jobs(wd, *target) == {}, "a finished workflow plans nothing"
 
-    # A comment and a docstring in the synthetic world's code: nothing reruns.
-    f = wd / "omnilidar" / "data" / "synthetic" / "raycast.py"
-    text = f.read_text()
-    assert text.startswith('"""')
-    f.write_text(text.replace('"""', '"""Edited docstring. ', 1).replace("\n\n", "\n\n# an edited comment\n", 1))
+    # A comment and a docstring in the synthetic world's and the generator's code: nothing reruns.
+    for f in (wd / "omnilidar" / "data" / "synthetic" / "raycast.py", wd / "omnilidar" / "generator" / "unet.py"):
+        text = f.read_text()
+        assert text.startswith('"""')
+        f.write_text(text.replace('"""', '"""Edited docstring. ', 1).replace("\n\n", "\n\n# an edited comment\n", 1))
     assert planned_jobs(wd, *target) == {}
 
-    # Code of the index stage: index and summary rerun, generation does not.
+    # Sampling settings: resample only, never retrain.
+    _edit_config(wd, lambda c: c["generator"]["sampling"].update(steps=3))
+    jobs = planned_jobs(wd, *target)
+    assert set(jobs) == {"sample_domain", "samples"}, jobs
+    assert jobs["sample_domain"] == 8
+    assert re.search(r"reason: .*[Pp]arams", rerun_reasons(wd, *target))
+    (wd / TINY).write_text(original)
+    _edit_config(wd, lambda c: c["data_summary"].update(
+        reference_scans=[str(p) for p in sorted(real_data.glob("kitti_object/velodyne/*.bin"))]))
+    assert planned_jobs(wd, *target) == {}
+
+    # Generator architecture: retrain and resample, but neither prompts nor domains.
+    _edit_config(wd, lambda c: c["generator"]["model"].update(base_channels=16))
+    assert planned_jobs(wd, *target) == {"train_generator": 1, "sample_domain": 8, "samples": 1}
+    _edit_config(wd, lambda c: c["generator"]["model"].update(base_channels=8))
+
+    # One domain's effect settings: that domain only, then the generator.
+    fog = dict(yaml.safe_load((wd / TINY).read_text())["domains"]["fog"])
+    _edit_config(wd, lambda c: c["domains"]["fog"].update(effects=[{"name": "fog", "severities": ["heavy"]}]))
+    jobs = planned_jobs(wd, *target)
+    assert jobs.get("build_domain") == 1 and "synthesize_semantickitti" not in jobs, jobs
+    assert jobs["train_generator"] == 1
+    _edit_config(wd, lambda c: c["domains"].update(fog=fog))
+
+    # Code of one effect: only the domains using it rebuild.
+    fog_py = wd / "omnilidar" / "domains" / "effects" / "fog.py"
+    fog_py.write_text(fog_py.read_text() + "\n_EDITED = True\n")
+    jobs = planned_jobs(wd, *target)
+    assert jobs.get("build_domain") == 1, jobs
+    assert "synthesize_semantickitti" not in jobs and "encode_prompts" not in jobs
+
+    # Settings of the summary only: only the summary reruns (plus the fog cascade above).
+    _edit_config(wd, lambda c: c["data_summary"].update(max_scans=3))
+    assert planned_jobs(wd, "results/data_summary.json", "--configfile", TINY) == {"data_summary": 1}
+
+    # Code of the index stage: index and summary rerun, synthesis does not.
     index_py = wd / "omnilidar" / "data" / "index.py"
     index_py.write_text(index_py.read_text() + "\n_EDITED = True\n")
-    jobs = planned_jobs(wd, *target)
+    jobs = planned_jobs(wd, "results/data_summary.json", "--configfile", TINY)
     assert set(jobs) == {"index_dataset", "data_summary"}, jobs
-    snakemake(wd, *target)
 
-    # Settings of the summary only: only the summary reruns.
-    cfg = yaml.safe_load((wd / TINY).read_text())
-    cfg.setdefault("data_summary", {})["max_scans"] = 3
-    (wd / TINY).write_text(yaml.safe_dump(cfg))
-    assert planned_jobs(wd, *target) == {"data_summary": 1}
-    reasons = rerun_reasons(wd, *target)
-    assert re.search(r"reason: .*[Pp]arams", reasons)
-
-    # Settings of the synthetic world: every generation job and everything downstream.
-    cfg["synthetic"]["world"] = dict(cfg["synthetic"].get("world", {}))
-    cfg["seed"] = cfg.get("seed", 0) + 1
-    (wd / TINY).write_text(yaml.safe_dump(cfg))
-    jobs = planned_jobs(wd, *target)
+    # The root seed: every generation job and everything downstream.
+    _edit_config(wd, lambda c: c.update(seed=1))
+    jobs = planned_jobs(wd, "results/data_summary.json", "--configfile", TINY)
     assert jobs == {**_shard_counts(load_config(wd / TINY)), "index_dataset": 4, "data_summary": 1}
