@@ -207,7 +207,7 @@ def plot_report(report: dict, path: str | Path) -> None:
             for k, (key, colour) in enumerate((("changed", "C0"), ("lost", "C3"), ("added", "C2"))):
                 v = s[key]
                 ax.bar(x + (k - 1) * 0.27, v["mean"], 0.27, color=colour,
-                       yerr=[[v["mean"] - v["min"]], [v["max"] - v["mean"]]], capsize=2,
+                       yerr=[[max(v["mean"] - v["min"], 0.0)], [max(v["max"] - v["mean"], 0.0)]], capsize=2,
                        label=key if x == 0 else None)
             anchor = entry["anchor"].get("weather_fraction", {}).get(severity)
             if anchor:
