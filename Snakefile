@@ -12,6 +12,7 @@ include: "rules/common.smk"
 include: "rules/data.smk"
 include: "rules/domains.smk"
 include: "rules/generator.smk"
+include: "rules/evaluation.smk"
 
 
 rule all:

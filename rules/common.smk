@@ -113,3 +113,31 @@ def _check_image_geometry():
 
 
 _check_image_geometry()
+
+
+# Evaluation helpers (rules/evaluation.smk defines EVAL, EXTRACTORS, METRIC_KIND).
+
+
+def extractor_weights(*metric_lists):
+    """{kind: weights path} of the feature metrics used: the configured official file,
+    else the workflow's self-trained checkpoint."""
+    kinds = sorted({METRIC_KIND[m] for metrics in metric_lists for m in metrics if m in METRIC_KIND})
+    official = EVAL["extractors"]["official_weights"]
+    return {k: official[k] or f"{EXTRACTORS}/{k}.pt" for k in kinds}
+
+
+def weights_args(weights):
+    return " ".join(f"--weights {k}={v}" for k, v in weights.items())
+
+
+def single_domain_settings(domain):
+    """The generator section with the single_domain preset's domain (and optional iterations) set."""
+    gen = json.loads(settings("generator", drop=("sampling",)))
+    gen["training"]["single_domain"] = domain
+    if EVAL["generation_quality"]["baseline_iterations"]:
+        gen["training"]["iterations"] = EVAL["generation_quality"]["baseline_iterations"]
+    return json.dumps(gen, sort_keys=True)
+
+
+def eval_settings(*reads):
+    return settings("evaluation", drop=tuple(t for t in TABLES if t not in reads))

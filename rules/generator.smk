@@ -2,7 +2,6 @@
 # built domains, and sample every domain as parallel shard jobs.
 
 GENERATOR = f"{DATA}/generator"
-ABLATION_PRESETS = list(config["generator"]["presets"]) if "presets" in config["generator"] else []
 
 
 rule encode_prompts:
@@ -34,6 +33,8 @@ rule train_generator:
         prompts=rules.encode_prompts.output,
     output:
         f"{GENERATOR}/{{preset}}/model.pt",
+    wildcard_constraints:
+        preset="single_domain|batch_homogeneous|cdts|cdts_cdfm|cdts_dafs|full",
     params:
         settings=settings("generator", drop=("sampling",)),
         seed=config["seed"],

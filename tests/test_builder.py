@@ -230,7 +230,7 @@ def test_shards_do_not_change_the_result(tiny_root, tmp_path):
 def test_shard_layout_reads_back_and_regenerates(tiny_root, tmp_path):
     root, index = tiny_root
     settings = section_defaults("domains")
-    settings["range_image"]["width"] = 256
+    settings["range_image"].update(width=256, height=None)  # one row per beam
     settings["beam32"]["max_scans"] = 2
     settings["fog"]["max_scans"] = 2
     for name in ("fog", "beam32"):

@@ -71,7 +71,8 @@ def test_tiny_real_run_of_one_domain_shard(workdir, tmp_path):
     cfg = tmp_path / "tiny.yaml"
     cfg.write_text(yaml.safe_dump({
         "datasets": {"semantickitti": {"root": str(root)}},
-        "domains": {"range_image": {"width": 256}, "fog": {"num_shards": 1, "max_scans": 2}},
+        "domains": {"range_image": {"width": 256, "height": 64}, "fog": {"num_shards": 1, "max_scans": 2}},
+        "generator": {"range_image": {"width": 256, "height": 64}},
     }))
     target = "data/domains/fog/shard_0"
     snakemake(workdir, target, "--configfile", str(cfg))

@@ -1,0 +1,140 @@
+"""omnilidar sampler-tradeoff: what generation accuracy costs in time (samplers x steps)."""
+
+from __future__ import annotations
+
+from omnilidar.commands._common import seed_arg, settings_arg
+
+HELP = "measure per-domain JSD/MMD/feature metric and seconds per scan for every sampler and step count"
+
+# A point is "recommended" when it is the fastest whose mean metric is within this factor of the best.
+TOLERANCE = 1.10
+
+
+def add_arguments(parser) -> None:
+    settings_arg(parser)
+    seed_arg(parser)
+    parser.add_argument("--domains", required=True)
+    parser.add_argument("--prompts", required=True)
+    parser.add_argument("--checkpoint", required=True, help="full OmniLiDAR checkpoint")
+    parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
+    parser.add_argument("--effects", default=None, help="results/effects_tradeoff.json (optional)")
+    parser.add_argument("--downstream", nargs="*", default=[], help="results/semkitti_*pct.json present so far")
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--figure", required=True)
+
+
+def effect_curves(path) -> list[dict]:
+    """Error/time curves of the domain effects (one per effect and knob) from effects_tradeoff.json."""
+    import json
+    from pathlib import Path
+
+    if not path or not Path(path).is_file():
+        return []
+    data = json.loads(Path(path).read_text())
+    curves = []
+    for effect, entry in (data.get("effects") or {}).items():
+        key = entry.get("primary_error")
+        knobs = dict.fromkeys(r["knob"] for r in entry.get("rows", []))
+        for knob in knobs:
+            rows = [r for r in entry["rows"] if r["knob"] == knob and key in r.get("errors", {})]
+            rows = [r for r in rows if r["time_s"] == r["time_s"]]  # drop NaN times
+            if rows:
+                curves.append({"name": f"{effect}:{knob}", "error_key": key,
+                               "values": [r["value"] for r in rows], "seconds": [r["time_s"] for r in rows],
+                               "error": [r["errors"][key] for r in rows],
+                               "default": [bool(r["is_default"]) for r in rows]})
+    return curves
+
+
+def downstream_points(paths) -> list[dict]:
+    """Hook for the segmentation study: mIoU against generated scans, from any
+    results/semkitti_*pct.json that lists ``gda_curve`` rows {generated_scans, miou[, seconds]}."""
+    import json
+    from pathlib import Path
+
+    rows = []
+    for p in paths or []:
+        if Path(p).is_file():
+            data = json.loads(Path(p).read_text())
+            for r in data.get("gda_curve", []) if isinstance(data, dict) else []:
+                if "generated_scans" in r and "miou" in r:
+                    rows.append({"source": str(p), **r})
+    return sorted(rows, key=lambda r: r["generated_scans"])
+
+
+def run(args) -> int:
+    import time
+
+    import numpy as np
+
+    from omnilidar.config import validate
+    from omnilidar.generator.text import load_prompt_cache
+    from omnilidar.generator.training import load_generator
+    from omnilidar.generator.unet import range_image_spec
+    from omnilidar.metrics.extractors import METRIC_NAMES
+    from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
+    from omnilidar.metrics.generation import compare, real_domain_images, sample_images, set_features
+    from omnilidar.provenance import envelope
+    from omnilidar.report.generation import collect_weights, pareto_front, tradeoff_figure, write_outputs
+
+    settings = validate(dict(args.settings), "evaluation.schema.yaml", source="--settings")
+    cfg = settings["tradeoff"]
+    feat = cfg["feature_metric"]
+    weights = {k: v for k, v in parse_pairs(args.weights, "--weights").items() if METRIC_NAMES.get(k) == feat}
+    extractors = load_extractors(weights, [feat])
+    den, payload = load_generator(args.checkpoint)
+    spec = range_image_spec(payload["config"])
+    cache = load_prompt_cache(args.prompts)
+    domains = cfg["domains"] or list(payload["domains"])
+    real = {d: set_features(real_domain_images(args.domains, d, spec.shape, settings["scans_per_set"]), spec,
+                            extractors, settings["batch_size"], f"real {d}") for d in domains}
+    # One untimed step so that lazy initialisation is not charged to the first setting.
+    sample_images(den, payload, cache, domains[0], 1, "ddim", 1, args.seed, 1)
+    t_all = time.perf_counter()
+    points = []
+    for sampler, steps_list in cfg["samplers"].items():
+        for steps in steps_list:
+            per_domain, secs = {}, []
+            for d in domains:
+                gen, sec = sample_images(den, payload, cache, d, cfg["scans"], sampler, steps, args.seed,
+                                         settings["batch_size"])
+                s = compare(real[d], set_features(gen, spec, extractors, settings["batch_size"]), extractors)
+                per_domain[d] = {"JSD": s.get("JSD"), "MMD": s.get("MMD_1e4"), feat: s.get(feat),
+                                 "seconds_per_scan": sec, "weights": s["weights"],
+                                 "comparable_with_paper": s["comparable_with_paper"]}
+                secs.append(sec)
+            point = {"sampler": sampler, "steps": steps, "seconds_per_scan": float(np.mean(secs)),
+                     "per_domain": per_domain}
+            for m in ("JSD", "MMD", feat):
+                vals = [v[m] for v in per_domain.values()]
+                point[f"mean_{m}"] = float(np.mean(vals)) if all(v is not None for v in vals) else None
+            points.append(point)
+            print(f"{sampler} x {steps}: {point['seconds_per_scan']:.3f} s/scan, JSD {point['mean_JSD']}, "
+                  f"{feat} {point[f'mean_{feat}']}", flush=True)
+    recommended = {}
+    for m in ("JSD", "MMD", feat):
+        ok = [p for p in points if p[f"mean_{m}"] is not None]
+        flags = pareto_front([p["seconds_per_scan"] for p in ok], [p[f"mean_{m}"] for p in ok])
+        for p in points:
+            p.setdefault("pareto", {})[m] = False
+        for p, f in zip(ok, flags):
+            p["pareto"][m] = bool(f)
+        if ok:
+            best = min(p[f"mean_{m}"] for p in ok)
+            good = [p for p in ok if p[f"mean_{m}"] <= best * TOLERANCE + 1e-12]
+            pick = min(good, key=lambda p: p["seconds_per_scan"])
+            recommended[m] = {"sampler": pick["sampler"], "steps": pick["steps"],
+                              "seconds_per_scan": pick["seconds_per_scan"], "value": pick[f"mean_{m}"]}
+    w, comparable = collect_weights({i: p["per_domain"] for i, p in enumerate(points)})
+    result = envelope(
+        "tradeoff", "sampler-tradeoff", settings, {"seed": args.seed}, {"sampling_study": time.perf_counter() - t_all},
+        "domains index", device_note="timings measured in this one run on the device named above",
+        feature_metric=feat, domains=domains, scans_per_setting=cfg["scans"], real_scans=settings["scans_per_set"],
+        weights=w, comparable_with_paper=comparable, points=points, recommended=recommended,
+        recommend_rule=f"fastest setting whose mean metric is within {TOLERANCE:.2f}x of the best",
+        effects=effect_curves(args.effects), downstream=downstream_points(args.downstream),
+    )
+    write_outputs(result, args.out)
+    tradeoff_figure(args.figure, result)
+    print(f"recommended: {recommended}")
+    return 0

@@ -1,0 +1,403 @@
+# Segmentation GDA stage: label subsets, the fixed labeler, pseudo-labels of the
+# generated samples, MinkUNet / SPVCNN trained from scratch (supervised-only and
+# GDA), evaluation and the experiment targets.
+#
+# What each rule sees, so that only what changed reruns:
+#   labeler, pseudo-labels      downstream.labeler only (never the generator's settings)
+#   supervised-only runs        real subset + training keys (no generator input, no mixing)
+#   GDA runs                    + sample shards, pseudo-labels, mixing
+#   evaluation                  backend, device, evaluation
+# Sample shards come from rules/generator.smk (rule sample_domain; common.smk's
+# sample_shards(label)); experiments name domains by their config keys.
+
+SUBSETS = f"{DATA}/subsets"
+SEG = f"{DATA}/segmentation"
+PSEUDO = f"{DATA}/pseudo_labels"
+LABELER = f"{DATA}/labeler/semantickitti.pt"
+DOWNSTREAM = config["downstream"]
+EXPERIMENTS = DOWNSTREAM["experiments"]
+TRAINING_KEYS = ("backend", "device", "voxel_size", "max_voxels", "max_points", "models", "schedule", "augmentation")
+CORRUPTED_DIR = CORRUPTED  # rules/domains.smk
+CORRUPTIONS = config["domains"]["corrupted"]["corruptions"]
+SEVERITIES = config["domains"]["corrupted"]["severities"]
+
+
+def downstream_settings(*keys):
+    """Some top-level keys of the downstream section as one JSON value."""
+    return json.dumps({k: DOWNSTREAM[k] for k in keys}, sort_keys=True)
+
+
+def data_source(dataset):
+    return "synthetic" if is_synthetic(dataset) else dataset_root(dataset)
+
+
+def gda_domains(w):
+    return w.domains.split("+")
+
+
+def domain_sample_shards(name):
+    """Sample shards of a domain given by its config key (samples are named by label)."""
+    return sample_shards(domain_label(name))
+
+
+def pseudo_label_shards(name):
+    """Pseudo-label shard of every sample shard of a domain (same label and shard names)."""
+    return [d.replace(f"{DATA}/samples/", f"{PSEUDO}/", 1) for d in domain_sample_shards(name)]
+
+
+def eval_sets(w):
+    """--set NAME=DIR arguments and folders of an evaluation group."""
+    if w.evalset == "corrupted":
+        return {f"{c}/{s}": f"{CORRUPTED_DIR}/{c}/{s}" for c in CORRUPTIONS for s in SEVERITIES}
+    if w.evalset == "weather":
+        stf = EXPERIMENTS["semanticstf"]
+        if stf["subsets"]:
+            return dict(stf["subsets"])
+        return {name: f"{CORRUPTED_DIR}/{cs}" for name, cs in stf["standin_sets"].items()}
+    return {}
+
+
+def eval_inputs(w):
+    sets = eval_sets(w)
+    # Real folders given in config are read as they are; corrupted sets are built.
+    return [d for d in sets.values() if d.startswith(f"{CORRUPTED_DIR}/")]
+
+
+def run_evaluation(dataset, backbone, pct, augmentation, evalset):
+    return f"{SEG}/{dataset}/{backbone}_{pct}pct_{augmentation}.{evalset}.json"
+
+
+def comparison(dataset, backbones, pct, domains, evalset):
+    """Evaluations of the supervised-only and GDA runs of each backbone."""
+    gda = "gda-" + "+".join(domains)
+    return [run_evaluation(dataset, b, pct, a, evalset) for b in backbones for a in ("real", gda)]
+
+
+def generated_pseudo_labels(domains):
+    return [d for name in domains for d in pseudo_label_shards(name)]
+
+
+TRAIN_SEGMENTOR = (
+    "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
+    "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
+    "--threads {threads} --out {output} "
+)
+GDA_RESULT = (
+    "omnilidar gda-result --experiment {params.experiment} --kind {params.kind} --settings {params.settings:q} "
+    "--seed {params.seed} --data-source {params.data_source:q} --evaluations {input.evaluations} "
+    "--pseudo-labels {input.pseudo} --out {output.json} --figure {output.figure} > {log} 2>&1"
+)
+
+
+rule make_subset:
+    """A label subset: one scan out of every 100/pct of the train split, as a JSON list."""
+    input:
+        f"{DATA}/index/{{dataset}}.json",
+    output:
+        f"{SUBSETS}/{{dataset}}_{{pct}}pct.json",
+    wildcard_constraints:
+        dataset=r"semantickitti|nuscenes",
+        pct=r"\d+",
+    params:
+        split="train",
+        code=code("make-subset"),
+    log:
+        f"logs/downstream/subset_{{dataset}}_{{pct}}pct.log",
+    benchmark:
+        f"benchmarks/out/downstream/subset_{{dataset}}_{{pct}}pct.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=500,
+        runtime=5,
+    shell:
+        "omnilidar make-subset --index {input} --split {params.split} --percent {wildcards.pct} "
+        "--out {output} > {log} 2>&1"
+
+
+rule train_labeler:
+    """The fixed labeler: the configured checkpoint, or trained once on 100 % of the
+    real SemanticKITTI train split (independent of the generator)."""
+    input:
+        index=[] if DOWNSTREAM["labeler"]["checkpoint"] else f"{DATA}/index/semantickitti.json",
+        checkpoint=DOWNSTREAM["labeler"]["checkpoint"] or [],
+    output:
+        LABELER,
+    params:
+        settings=settings("downstream", "labeler"),
+        seed=config["seed"],
+        work_dir="work/labeler",
+        index=f"{DATA}/index/semantickitti.json",
+        code=code("train-labeler"),
+    log:
+        "logs/downstream/labeler.log",
+    benchmark:
+        "benchmarks/out/downstream/labeler.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=8000,
+        runtime=600,
+        gpu=1,
+    shell:
+        "omnilidar train-labeler --index {params.index} --settings {params.settings:q} --seed {params.seed} "
+        "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
+
+
+rule pseudo_label:
+    """Pseudo-labels (raw SemanticKITTI ids) for one shard of generated scans."""
+    input:
+        labeler=LABELER,
+        samples=f"{DATA}/samples/{{domain}}/shard_{{shard}}",
+    output:
+        directory(f"{PSEUDO}/{{domain}}/shard_{{shard}}"),
+    wildcard_constraints:
+        shard=r"\d+",
+    params:
+        settings=settings("downstream", "labeler"),
+        code=code("pseudo-label"),
+    log:
+        f"logs/downstream/pseudo_labels/{{domain}}_{{shard}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/pseudo_labels/{{domain}}_{{shard}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=60,
+        gpu=1,
+    shell:
+        "omnilidar pseudo-label --labeler {input.labeler} --samples {input.samples} "
+        "--settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
+
+
+rule train_supervised:
+    """Supervised-only run: the real label subset alone, from scratch."""
+    input:
+        subset=f"{SUBSETS}/{{dataset}}_{{pct}}pct.json",
+    output:
+        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_real.pt",
+    wildcard_constraints:
+        dataset=r"semantickitti|nuscenes",
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+    params:
+        settings=downstream_settings(*TRAINING_KEYS),
+        seed=config["seed"],
+        work_dir="work/segmentation",
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=8000,
+        runtime=600,
+        gpu=1,
+    shell:
+        TRAIN_SEGMENTOR + "> {log} 2>&1"
+
+
+rule train_gda:
+    """GDA run: the real label subset plus the pseudo-labelled generated scans of the
+    domains (joined by '+'), from scratch; the mixing is configured and recorded."""
+    input:
+        subset=f"{SUBSETS}/{{dataset}}_{{pct}}pct.json",
+        samples=lambda w: [d for name in gda_domains(w) for d in domain_sample_shards(name)],
+        pseudo=lambda w: generated_pseudo_labels(gda_domains(w)),
+    output:
+        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda-{{domains}}.pt",
+    wildcard_constraints:
+        dataset=r"semantickitti|nuscenes",
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+        domains=r"[a-z0-9_]+(\+[a-z0-9_]+)*",
+    params:
+        settings=downstream_settings(*TRAINING_KEYS, "mixing"),
+        seed=config["seed"],
+        work_dir="work/segmentation",
+        domains=lambda w: " ".join(gda_domains(w)),
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=8000,
+        runtime=600,
+        gpu=1,
+    shell:
+        TRAIN_SEGMENTOR + "--samples {input.samples} --pseudo-labels {input.pseudo} --domains {params.domains} "
+        "> {log} 2>&1"
+
+
+rule evaluate_segmentor:
+    """Per-class IoU, mIoU (semantic-kitti-api and nanmean) and accuracy of one run on the
+    official val split (val), plus the corrupted sets (corrupted) or weather subsets (weather)."""
+    input:
+        checkpoint=f"{SEG}/{{dataset}}/{{run}}.pt",
+        index=f"{DATA}/index/{{dataset}}.json",
+        sets=eval_inputs,
+    output:
+        f"{SEG}/{{dataset}}/{{run}}.{{evalset}}.json",
+    wildcard_constraints:
+        dataset=r"semantickitti|nuscenes",
+        run=r"(minkunet|spvcnn)_\d+pct_[a-z0-9_+\-]+",
+        evalset=r"val|corrupted|weather",
+    params:
+        settings=downstream_settings("backend", "device", "evaluation"),
+        sets=lambda w: " ".join(f"--set {n}={d}" for n, d in eval_sets(w).items()),
+        code=code("evaluate-segmentor"),
+    log:
+        f"logs/downstream/evaluate/{{dataset}}_{{run}}.{{evalset}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/evaluate/{{dataset}}_{{run}}.{{evalset}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=4000,
+        runtime=60,
+        gpu=1,
+    shell:
+        "omnilidar evaluate-segmentor --checkpoint {input.checkpoint} --index {input.index} --split val "
+        "{params.sets} --settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
+
+
+rule semkitti_result:
+    """MinkUNet and SPVCNN on a SemanticKITTI label subset: supervised-only vs GDA."""
+    input:
+        evaluations=lambda w: comparison("semantickitti", EXPERIMENTS["semkitti"]["backbones"], w.pct,
+                                         [EXPERIMENTS["semkitti"]["domain"]], "val"),
+        pseudo=generated_pseudo_labels([EXPERIMENTS["semkitti"]["domain"]]),
+    output:
+        json="results/semkitti_{pct}pct.json",
+        figure=report("results/figures/semkitti_{pct}pct.png", caption="../workflow/report/segmentation.rst", category="Segmentation"),
+    wildcard_constraints:
+        pct=r"\d+",
+    params:
+        experiment=lambda w: f"semkitti_{w.pct}pct",
+        kind="semkitti",
+        settings=settings("downstream"),
+        seed=config["seed"],
+        data_source=data_source("semantickitti"),
+        code=code("gda-result"),
+    log:
+        "logs/downstream/semkitti_{pct}pct.log",
+    benchmark:
+        "benchmarks/out/downstream/semkitti_{pct}pct.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+        runtime=10,
+    shell:
+        GDA_RESULT
+
+
+rule semkittic_result:
+    """Robustness on the corrupted val sets: mCE and mRR with and without GDA."""
+    input:
+        evaluations=comparison("semantickitti", [EXPERIMENTS["semkittic"]["backbone"]],
+                               EXPERIMENTS["semkittic"]["percent"], EXPERIMENTS["semkittic"]["domains"], "corrupted"),
+        pseudo=generated_pseudo_labels(EXPERIMENTS["semkittic"]["domains"]),
+    output:
+        json="results/semkittic.json",
+        figure=report("results/figures/semkittic.png", caption="../workflow/report/segmentation.rst", category="Segmentation"),
+    params:
+        experiment="semkittic",
+        kind="semkittic",
+        settings=settings("downstream"),
+        seed=config["seed"],
+        data_source=data_source("semantickitti"),
+        code=code("gda-result"),
+    log:
+        "logs/downstream/semkittic.log",
+    benchmark:
+        "benchmarks/out/downstream/semkittic.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+        runtime=10,
+    shell:
+        GDA_RESULT
+
+
+rule nusc_beam32_result:
+    """Beam-32 samples augmenting a nuScenes label subset (16 lidarseg classes)."""
+    input:
+        evaluations=lambda w: comparison("nuscenes", EXPERIMENTS["nusc_beam32"]["backbones"], w.pct,
+                                         [EXPERIMENTS["nusc_beam32"]["domain"]], "val"),
+        pseudo=generated_pseudo_labels([EXPERIMENTS["nusc_beam32"]["domain"]]),
+    output:
+        json="results/nusc_beam32_{pct}pct.json",
+        figure=report("results/figures/nusc_beam32_{pct}pct.png", caption="../workflow/report/segmentation.rst", category="Segmentation"),
+    wildcard_constraints:
+        pct=r"\d+",
+    params:
+        experiment=lambda w: f"nusc_beam32_{w.pct}pct",
+        kind="nusc_beam32",
+        settings=settings("downstream"),
+        seed=config["seed"],
+        data_source=data_source("nuscenes"),
+        code=code("gda-result"),
+    log:
+        "logs/downstream/nusc_beam32_{pct}pct.log",
+    benchmark:
+        "benchmarks/out/downstream/nusc_beam32_{pct}pct.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+        runtime=10,
+    shell:
+        GDA_RESULT
+
+
+rule semanticstf_result:
+    """Fog, snow and rain samples augmenting the full real set, per weather subset
+    (a synthetic-weather stand-in unless SemanticSTF subsets are configured)."""
+    input:
+        evaluations=comparison("semantickitti", [EXPERIMENTS["semanticstf"]["backbone"]], 100,
+                               EXPERIMENTS["semanticstf"]["domains"], "weather"),
+        pseudo=generated_pseudo_labels(EXPERIMENTS["semanticstf"]["domains"]),
+    output:
+        json="results/semanticstf.json",
+        figure=report("results/figures/semanticstf.png", caption="../workflow/report/segmentation.rst", category="Segmentation"),
+    params:
+        experiment="semanticstf",
+        kind="semanticstf",
+        settings=settings("downstream"),
+        seed=config["seed"],
+        data_source=data_source("semantickitti"),
+        standin="" if EXPERIMENTS["semanticstf"]["subsets"] else "--standin",
+        code=code("gda-result"),
+    log:
+        "logs/downstream/semanticstf.log",
+    benchmark:
+        "benchmarks/out/downstream/semanticstf.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+        runtime=10,
+    shell:
+        GDA_RESULT.replace("> {log}", "{params.standin} > {log}")
+
+
+rule segmentation:
+    """Every segmentation experiment target."""
+    input:
+        expand("results/semkitti_{pct}pct.json", pct=EXPERIMENTS["semkitti"]["percents"]),
+        "results/semkittic.json",
+        expand("results/nusc_beam32_{pct}pct.json", pct=EXPERIMENTS["nusc_beam32"]["percents"]),
+        "results/semanticstf.json",

@@ -1,0 +1,196 @@
+"""The generation targets end to end on a tiny untrained generator, and their workflow rules."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from omnilidar.cli import main
+from omnilidar.config import section_defaults
+from omnilidar.data.range_image import encode, project
+from omnilidar.io.semantickitti import read_points, write_points
+from omnilidar.metrics.extractors.weights import build_model, save_self_trained
+from omnilidar.report.generation import metric_table, pareto_front, provenance_note
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+DOMAINS = ["Vehicle", "Beam32"]
+
+
+def tiny_generator_settings() -> dict:
+    g = section_defaults("generator")
+    g["range_image"].update(height=32, width=256)
+    g["model"].update(base_channels=8, channel_multipliers=[1, 2], num_res_blocks=1, cross_attention_levels=[1],
+                      cdfm_levels=[1], dafs_embed_dim=4)
+    return g
+
+
+@pytest.fixture(scope="module")
+def fixture_dir(tmp_path_factory) -> Path:
+    """Domains index with real KITTI scans (Beam32 = every other row), a prompt cache,
+    an untrained generator checkpoint, a self-trained-format FRID extractor, a KITTI-360
+    style index and an effects_tradeoff.json."""
+    from omnilidar.generator.text import CACHE_FORMAT
+    from omnilidar.generator.training import CHECKPOINT_FORMAT
+    from omnilidar.generator.unet import build_denoiser, range_image_spec
+
+    root = tmp_path_factory.mktemp("gen_targets")
+    g = tiny_generator_settings()
+    spec = range_image_spec(g)
+    imgs = []
+    for name in ("000000", "000001"):
+        pts = read_points(REAL / "kitti_object" / "velodyne" / f"{name}.bin")
+        write_points(root / f"{name}.bin", pts)
+        proj = project(pts, spec)
+        imgs.append(encode(proj.range_img, proj.intensity_img, spec))
+    index = {"domains": {}}
+    for k, dom in enumerate(DOMAINS):
+        shard = root / "domains" / dom / "shard_0" / "range"
+        shard.mkdir(parents=True)
+        for i, img in enumerate(imgs * 2):
+            img = img.copy()
+            if dom == "Beam32":
+                img[:, 1::2] = -1.0
+            np.savez(shard / f"{i:06d}.npz", image=img)
+        index["domains"][dom] = {"id": k, "name": dom.lower(), "num_scans": 4, "shards": [f"domains/{dom}/shard_0"]}
+    (root / "index.json").write_text(json.dumps(index))
+
+    dim, t = 8, 3
+    gen = torch.Generator().manual_seed(0)
+    cache = {"format": CACHE_FORMAT, "encoder": "test", "model": "test", "dim": dim, "max_tokens": t,
+             "domains": {d: {"prompts": [f"{d} prompt"], "tokens": torch.randn(1, t, dim, generator=gen),
+                             "mask": torch.ones(1, t, dtype=torch.bool)} for d in DOMAINS}}
+    torch.save(cache, root / "prompts.pt")
+    torch.manual_seed(0)
+    den = build_denoiser(g, dim, len(DOMAINS))
+    torch.save({"format": CHECKPOINT_FORMAT, "state_dict": den.state_dict(), "config": g, "domains": DOMAINS,
+                "text": {"encoder": "test", "model": "test", "dim": dim}, "seed": 0}, root / "model.pt")
+
+    arch = {"in_channels": 4, "depth": 21, "width": 4}
+    save_self_trained(root / "frid.pt", "frid", arch, "feedbeef", build_model("frid", arch), {})
+    arch = {"num_classes": 19}
+    save_self_trained(root / "fpd.pt", "fpd", arch, "cafe", build_model("fpd", arch), {})
+    (root / "kitti360.json").write_text(json.dumps({"splits": {"val": [
+        {"points": str(root / "000000.bin"), "labels": None}, {"points": str(root / "000001.bin"), "labels": None}]}}))
+    effects = {"effects": {"fog": {"primary_error": "err_fog_fraction", "rows": [
+        {"knob": "samples", "value": v, "time_s": 0.01 * v, "errors": {"err_fog_fraction": 1.0 / v},
+         "is_default": v == 4} for v in (1, 4, 16)]}}}
+    (root / "effects.json").write_text(json.dumps(effects))
+    return root
+
+
+def _settings(**extra) -> str:
+    s = {"scans_per_set": 2, "batch_size": 2, "sampler": "ddim", "steps": 1, **extra}
+    return json.dumps(s)
+
+
+def test_generation_quality_and_ablation(fixture_dir, capsys):
+    r = fixture_dir
+    out = r / "gq.json"
+    rc = main(["generation-quality", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+               "--full", str(r / "model.pt"), "--baseline", f"Vehicle={r / 'model.pt'}",
+               "--weights", f"frid={r / 'frid.pt'}",
+               "--settings", _settings(generation_quality={"metrics": ["FRID", "JSD", "MMD"]}),
+               "--out", str(out), "--markdown", str(r / "gq.md"), "--figure", str(r / "gq.png")])
+    assert rc == 0
+    res = json.loads(out.read_text())
+    for key in ("experiment", "config_hash", "code_hash", "data_source", "device", "seeds", "timings"):
+        assert key in res
+    assert set(res["scores"]) == set(DOMAINS)
+    vehicle = res["scores"]["Vehicle"]
+    # same checkpoint and seeds for both methods -> identical samples and scores
+    assert vehicle["OmniLiDAR"]["FRID"] == vehicle["single-domain (R2DM)"]["FRID"] >= 0
+    assert "single-domain (R2DM)" not in res["scores"]["Beam32"]
+    assert res["weights"]["FRID"] == "self-trained:feedbeef" and res["comparable_with_paper"]["FRID"] is False
+    md = (r / "gq.md").read_text()
+    assert "| Vehicle |" in md and "not with published numbers" in md
+    assert (r / "gq.png").stat().st_size > 1000
+
+    rc = main(["ablation-table", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+               "--checkpoint", f"cdts={r / 'model.pt'}", "--checkpoint", f"full={r / 'model.pt'}",
+               "--settings", _settings(ablation={"metrics": ["JSD", "MMD"]}),
+               "--out", str(r / "abl.json"), "--markdown", str(r / "abl.md"), "--figure", str(r / "abl.png")])
+    assert rc == 0
+    abl = json.loads((r / "abl.json").read_text())
+    assert abl["presets"] == ["cdts", "full"] and abl["mean"]["cdts"] == abl["mean"]["full"]
+    assert "CDTS + CDFM + DAFS (OmniLiDAR)" in (r / "abl.md").read_text()
+
+
+def test_kitti360_and_evidence(fixture_dir):
+    r = fixture_dir
+    rc = main(["kitti360-generation", "--index", str(r / "kitti360.json"), "--prompts", str(r / "prompts.pt"),
+               "--full", str(r / "model.pt"), "--weights", f"fpd={r / 'fpd.pt'}",
+               "--settings", _settings(kitti360={"metrics": ["FPD", "JSD", "MMD"]}),
+               "--out", str(r / "k.json"), "--markdown", str(r / "k.md"), "--figure", str(r / "k.png")])
+    assert rc == 0
+    k = json.loads((r / "k.json").read_text())
+    assert k["scores"]["OmniLiDAR"]["FPD"] > 0 and k["paper"]["R2DM"]["FRD"] == 179.43
+
+    rc = main(["generator-evidence", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+               "--checkpoint", str(r / "model.pt"), "--settings", _settings(evidence={"scans": 2}),
+               "--out", str(r / "ev.json"), "--markdown", str(r / "ev.md"), "--figure", str(r / "ev.png")])
+    assert rc == 0
+    ev = json.loads((r / "ev.json").read_text())
+    st = ev["domains"]["Beam32"]["statistics"]
+    assert st["real"]["empty_row_fraction"] >= 0.5  # the real Beam32 set has every other row empty
+    # the fixture checkpoint is the untrained initialisation itself: identical samples
+    assert ev["domains"]["Vehicle"]["trained"]["JSD"] == ev["domains"]["Vehicle"]["untrained"]["JSD"]
+    assert "| Beam32 |" in (r / "ev.md").read_text()
+
+
+def test_sampler_tradeoff_one_run(fixture_dir):
+    r = fixture_dir
+    settings = _settings(tradeoff={"samplers": {"ddim": [1, 2], "dpmpp_2m": [1]}, "scans": 2,
+                                   "domains": ["Vehicle"], "feature_metric": "FRID"})
+    rc = main(["sampler-tradeoff", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+               "--checkpoint", str(r / "model.pt"), "--weights", f"frid={r / 'frid.pt'}",
+               "--weights", f"fpd={r / 'fpd.pt'}", "--effects", str(r / "effects.json"),
+               "--downstream", str(r / "missing.json"), "--settings", settings,
+               "--out", str(r / "t.json"), "--figure", str(r / "t.png")])
+    assert rc == 0
+    t = json.loads((r / "t.json").read_text())
+    assert [(p["sampler"], p["steps"]) for p in t["points"]] == [("ddim", 1), ("ddim", 2), ("dpmpp_2m", 1)]
+    assert all(p["seconds_per_scan"] > 0 for p in t["points"])
+    assert any(p["pareto"]["JSD"] for p in t["points"]) and "JSD" in t["recommended"]
+    assert set(t["points"][0]["per_domain"]["Vehicle"]) >= {"JSD", "MMD", "FRID", "seconds_per_scan"}
+    assert t["effects"][0]["name"] == "fog:samples" and t["downstream"] == []
+    assert (r / "t.png").stat().st_size > 1000
+
+
+def test_report_helpers():
+    assert pareto_front([1, 2, 3, 4], [5, 3, 4, 1]) == [True, True, False, True]
+    assert pareto_front([1, 1], [2, 2]) == [True, True]  # ties dominate nothing
+    md = metric_table({"Fog": {"a": {"JSD": 0.2, "MMD_1e4": 3.0}, "b": {"JSD": 0.1, "MMD_1e4": None}}},
+                      ["JSD", "MMD"], ["a", "b"])
+    assert "| Fog | 0.200 | **0.100** | **3.000** | n/a |" in md
+    assert "self-trained" in provenance_note({"FRD": "self-trained:x"}, {"FRD": False})
+    assert "self-trained" not in provenance_note({"FRD": "official:y"}, {"FRD": True})
+
+
+def test_workflow_plans_the_evaluation_targets(tmp_path):
+    from tests.workflow_helpers import copy_workflow, planned_jobs
+
+    (tmp_path / "wf").mkdir()
+    work = copy_workflow(tmp_path / "wf")
+    shared = tmp_path / "shared"  # the domain reports name real scans as ../shared/data/real/...
+    shared.symlink_to(REAL.parents[1], target_is_directory=True)
+    snake = work / "Snakefile"
+    text = snake.read_text()
+    missing = "".join(f'include: "rules/{f}.smk"\n' for f in ("domains", "generator", "evaluation")
+                      if f"rules/{f}.smk" not in text)
+    snake.write_text(text.replace("\n\nrule all:", f"\n{missing}\n\nrule all:", 1))
+    schema = work / "workflow" / "schemas" / "config.schema.yaml"
+    s = schema.read_text()
+    for sec in ("domains", "generator", "evaluation"):
+        if f"{sec}.schema.yaml" not in s:
+            s += f"  {sec}:\n    $ref: {sec}.schema.yaml\n"
+    schema.write_text(s)
+    jobs = planned_jobs(work, "results/generation_quality.json", "results/tradeoff.json",
+                        "results/generator_evidence.json", "results/kitti360_generation.json", "results/ablation.json")
+    assert jobs["generation_quality"] == 1 and jobs["sampler_tradeoff"] == 1 and jobs["generator_evidence"] == 1
+    assert jobs["train_single_domain"] == 8  # one R2DM-equivalent baseline per domain
+    assert jobs["train_extractor"] == 5  # every feature metric self-trained by default
+    assert jobs["train_generator"] == 6  # the six ablation presets (full among them)
