@@ -141,3 +141,69 @@ def single_domain_settings(domain):
 
 def eval_settings(*reads):
     return settings("evaluation", drop=tuple(t for t in TABLES if t not in reads))
+
+
+# Downstream helpers (rules/downstream.smk defines DOWNSTREAM, PSEUDO, SEG, CORRUPTED_DIR, ...).
+
+
+def downstream_settings(*keys):
+    """Some top-level keys of the downstream section as one JSON value."""
+    return json.dumps({k: DOWNSTREAM[k] for k in keys}, sort_keys=True)
+
+
+def data_source(dataset):
+    return "synthetic" if is_synthetic(dataset) else dataset_root(dataset)
+
+
+def gda_domains(w):
+    return w.domains.split("+")
+
+
+def domain_sample_shards(name):
+    """Sample shards of a domain given by its config key (samples are named by label)."""
+    return sample_shards(domain_label(name))
+
+
+def pseudo_label_shards(name):
+    """Pseudo-label shard of every sample shard of a domain (same label and shard names)."""
+    return [d.replace(f"{DATA}/samples/", f"{PSEUDO}/", 1) for d in domain_sample_shards(name)]
+
+
+def eval_sets(w):
+    """--set NAME=DIR arguments and folders of an evaluation group."""
+    if w.evalset == "corrupted":
+        return {f"{c}/{s}": f"{CORRUPTED_DIR}/{c}/{s}" for c in CORRUPTIONS for s in SEVERITIES}
+    if w.evalset == "weather":
+        stf = EXPERIMENTS["semanticstf"]
+        if stf["subsets"]:
+            return dict(stf["subsets"])
+        return {name: f"{CORRUPTED_DIR}/{cs}" for name, cs in stf["standin_sets"].items()}
+    return {}
+
+
+def eval_inputs(w):
+    sets = eval_sets(w)
+    # Real folders given in config are read as they are; corrupted sets are built.
+    return [d for d in sets.values() if d.startswith(f"{CORRUPTED_DIR}/")]
+
+
+def run_evaluation(dataset, backbone, pct, augmentation, evalset):
+    return f"{SEG}/{dataset}/{backbone}_{pct}pct_{augmentation}.{evalset}.json"
+
+
+def comparison(dataset, backbones, pct, domains, evalset):
+    """Evaluations of the supervised-only and GDA runs of each backbone."""
+    gda = "gda-" + "+".join(domains)
+    return [run_evaluation(dataset, b, pct, a, evalset) for b in backbones for a in ("real", gda)]
+
+
+def generated_pseudo_labels(domains):
+    return [d for name in domains for d in pseudo_label_shards(name)]
+
+
+GDA_RESULT = (
+    "omnilidar gda-result --experiment {params.experiment} --kind {params.kind} --settings {params.settings:q} "
+    "--seed {params.seed} --data-source {params.data_source:q} --evaluations {input.evaluations} "
+    "--pseudo-labels {input.pseudo} --out {output.json} --figure {output.figure} > {log} 2>&1"
+)
+GDA_RESULT_STANDIN = GDA_RESULT.replace("> {log}", "{params.standin} > {log}")

@@ -67,10 +67,13 @@ def devoxelize(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor) -> to
     return out
 
 
-def point_voxel_rows(x: SparseTensor, points: torch.Tensor, stride: int) -> torch.Tensor:
-    """Row of ``x`` holding each point's own voxel at ``stride``."""
-    cells = torch.floor(points[:, 1:].double() / stride).long()
-    rows = _lookup(x, points[:, 0].long(), cells)
+def point_voxel_rows(x: SparseTensor, batch: SegBatch, stride: int) -> torch.Tensor:
+    """Row of ``x`` holding each point's own voxel at ``stride``, from the integer
+    coordinates of the point's stride-1 voxel (float positions can round across a
+    cell boundary and miss it)."""
+    own = batch.voxel_coords[batch.point_to_voxel].long()
+    cells = torch.div(own[:, 1:], stride, rounding_mode="floor")
+    rows = _lookup(x, own[:, 0], cells)
     if (rows < 0).any():
         raise ValueError(f"{int((rows < 0).sum())} points have no voxel at stride {stride}")
     return rows
@@ -158,12 +161,12 @@ class SPVCNN(nn.Module):
             x = stage(x)
             skips.append(x)
         z1 = read(x, 16) + self.point_mlps[0](z0)
-        x = voxelize_points(x, z1, point_voxel_rows(x, pts, 16))
+        x = voxelize_points(x, z1, point_voxel_rows(x, batch, 16))
         x = x.replace_feats(self.dropout(x.feats))
         for i in range(2):
             x = t.fuse[i](concat(t.up[i](x), skips[3 - i]))
         z2 = read(x, 4) + self.point_mlps[1](z1)
-        x = voxelize_points(x, z2, point_voxel_rows(x, pts, 4))
+        x = voxelize_points(x, z2, point_voxel_rows(x, batch, 4))
         x = x.replace_feats(self.dropout(x.feats))
         for i in range(2, 4):
             x = t.fuse[i](concat(t.up[i](x), skips[3 - i]))

@@ -1,0 +1,70 @@
+"""omnilidar gda-result: one segmentation experiment target (JSON with provenance + figure)."""
+
+from __future__ import annotations
+
+from omnilidar.commands._common import seed_arg, settings_arg
+
+HELP = "assemble a segmentation GDA experiment (supervised-only vs GDA, mCE/mRR, weather subsets) with its figure"
+
+
+def add_arguments(parser) -> None:
+    settings_arg(parser)
+    seed_arg(parser)
+    parser.add_argument("--experiment", required=True, help="target name, e.g. semkitti_1pct")
+    parser.add_argument("--kind", required=True, choices=["semkitti", "semkittic", "nusc_beam32", "semanticstf"])
+    parser.add_argument("--evaluations", nargs="+", required=True, help="evaluate-segmentor outputs")
+    parser.add_argument("--pseudo-labels", nargs="*", default=[], help="pseudo-label shards used (for timings)")
+    parser.add_argument("--data-source", default="synthetic", help="'synthetic' or the real dataset root")
+    parser.add_argument("--standin", action="store_true", help="the evaluation sets are a synthetic stand-in")
+    parser.add_argument("--out", required=True, help="result JSON")
+    parser.add_argument("--figure", required=True, help="per-class IoU figure (PNG)")
+
+
+def run(args) -> int:
+    import json
+    from pathlib import Path
+
+    from omnilidar.downstream.seg import experiments as ex
+    from omnilidar.errors import InputError
+    from omnilidar.io.atomic import write_text_atomic
+    from omnilidar.provenance import envelope
+    from omnilidar.report.segmentation import iou_bars
+
+    evals = [ex.read_evaluation(p) for p in args.evaluations]
+    sidecars = []
+    for d in args.pseudo_labels:
+        side = Path(d) / "sidecar.json"
+        if not side.is_file():
+            raise InputError(d, "pseudo-label shard has no sidecar.json")
+        sidecars.append(json.loads(side.read_text()))
+    if args.kind in ("semkitti", "nusc_beam32"):
+        numbers = {"runs": ex.compare(args.kind, evals)}
+    elif args.kind == "semkittic":
+        numbers = {"runs": ex.robustness_result(evals)}
+    else:
+        numbers = {"runs": ex.weather_result(evals)}
+    first = evals[0]["train"]["info"]
+    numbers.update({
+        "label_space": evals[0]["label_space"],
+        "label_percent": first["percent"],
+        "generated_domains": sorted({d for e in evals for d in e["train"]["info"].get("domains", [])}),
+        "miou_convention": "miou: semantic-kitti-api (absent classes count as 0); miou_nanmean: mmdet3d",
+        "evaluation_sets": sorted(evals[0]["sets"]),
+    })
+    if args.kind == "semanticstf":
+        numbers["synthetic_weather_standin"] = bool(args.standin)
+        if args.standin:
+            numbers["standin_note"] = ("SemanticSTF is not configured: the weather subsets are corrupted "
+                                       "SemanticKITTI val sets (downstream.experiments.semanticstf.standin_sets); "
+                                       "'rain' is the heavy wet-ground set since the corrupted sets have no rain")
+    doc = envelope(args.experiment, "gda-result", args.settings, {"seed": args.seed},
+                   ex.timings(evals, sidecars), args.data_source, **numbers)
+    write_text_atomic(args.out, json.dumps(doc, indent=1))
+    title = f"{args.experiment}: per-class IoU, supervised-only vs GDA ({', '.join(numbers['generated_domains'])})"
+    iou_bars(ex.figure_panels(args.kind, evals), args.figure, title)
+    for backbone, run in numbers["runs"].items():
+        if "miou_gain" in run and isinstance(run["miou_gain"], float):
+            print(f"{backbone}: supervised-only {100 * run['supervised_only']['scores']['val']['miou']:.2f} "
+                  f"-> GDA {100 * run['gda']['scores']['val']['miou']:.2f} mIoU")
+    print(f"result: {args.out}  figure: {args.figure}")
+    return 0

@@ -1,0 +1,32 @@
+"""omnilidar pseudo-label: label one sample shard with the fixed labeler."""
+
+from __future__ import annotations
+
+from omnilidar.commands._common import settings_arg
+
+HELP = "pseudo-label one shard of generated scans (.label files in raw SemanticKITTI ids)"
+
+
+def add_arguments(parser) -> None:
+    settings_arg(parser)
+    parser.add_argument("--labeler", required=True, help="labeler checkpoint from train-labeler")
+    parser.add_argument("--samples", required=True, help="sample shard directory (velodyne/*.bin)")
+    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    parser.add_argument("--out", required=True, help="pseudo-label shard directory (appears only when complete)")
+
+
+def run(args) -> int:
+    import torch
+
+    from omnilidar.config import validate
+    from omnilidar.downstream.seg.evaluate import load_segmentor
+    from omnilidar.downstream.seg.pseudo_label import pseudo_label_shard
+    from omnilidar.downstream.seg.training import set_threads
+
+    set_threads(args.threads)
+    section = validate({"labeler": dict(args.settings)}, "downstream.schema.yaml", source="--settings")["labeler"]
+    torch.set_grad_enabled(False)
+    model, payload = load_segmentor(args.labeler, section["backend"], section["device"])
+    side = pseudo_label_shard(model, payload, args.samples, args.out, section["batch_size"])
+    print(f"{len(side['scans'])} scans pseudo-labelled in {side['seconds']} s -> {args.out}")
+    return 0

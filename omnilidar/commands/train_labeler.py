@@ -1,0 +1,37 @@
+"""omnilidar train-labeler: the fixed labeler (imported user checkpoint, or trained once on 100 %)."""
+
+from __future__ import annotations
+
+from omnilidar.commands._common import seed_arg, settings_arg
+
+HELP = "make the fixed pseudo-labeler: import downstream.labeler.checkpoint or train it on the full real train split"
+
+
+def add_arguments(parser) -> None:
+    settings_arg(parser)
+    seed_arg(parser)
+    parser.add_argument("--index", nargs="?", default=None,
+                        help="SemanticKITTI dataset index (its train split trains the labeler; not needed to import)")
+    parser.add_argument("--work-dir", default="work/labeler", help="resumable training state (undeclared)")
+    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    parser.add_argument("--out", required=True, help="labeler checkpoint (weights-only loadable)")
+
+
+def run(args) -> int:
+    from omnilidar.config import validate
+    from omnilidar.downstream.seg.labeler import import_labeler, train_labeler
+    from omnilidar.downstream.seg.training import set_threads
+
+    set_threads(args.threads)
+    section = validate({"labeler": dict(args.settings)}, "downstream.schema.yaml", source="--settings")["labeler"]
+    if section["checkpoint"]:
+        info = import_labeler(section, section["checkpoint"], args.out)
+        print(f"imported labeler {info['source']} ({info['model']['backbone']}) -> {args.out}")
+    else:
+        if not args.index:
+            from omnilidar.errors import InputError
+
+            raise InputError(None, "--index is needed to train the labeler (no downstream.labeler.checkpoint given)")
+        summary = train_labeler(section, args.index, args.out, args.work_dir, args.seed)
+        print(f"trained labeler: {summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")
+    return 0

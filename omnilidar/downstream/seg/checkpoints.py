@@ -1,0 +1,132 @@
+"""Segmentor checkpoints: the final payload, user state dicts, and resumable
+mmengine checkpoints that stay loadable with ``torch.load(weights_only=True)``.
+
+Final payload (written atomically by the training stage)::
+
+    {"format": "omnilidar-segmentor/1", "state_dict": {...}, "model": {backbone,
+     width, depth, in_channels, num_classes}, "label_space": str, "voxel_size": float,
+     "config": {...}, "seed": int, "iterations": int, "train": {...}}
+
+Everything in it is a tensor, dict, list, str or number, so it loads with the
+safe loader. A user's own checkpoint (the labeler) may be such a payload or a
+plain state dict (optionally under a ``state_dict`` key); both are loaded with
+``weights_only=True`` and anything else is rejected.
+
+mmengine pickles its message hub into resumable checkpoints (``HistoryBuffer``
+objects and numpy values), which the safe loader refuses; the hook from
+:func:`weights_only_hook` turns them into tagged plain values on save and back
+on load, so resuming needs no exception either.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from omnilidar.errors import InputError
+from omnilidar.io.atomic import atomic_path
+
+FORMAT = "omnilidar-segmentor/1"
+_TAG = "__omnilidar_type__"
+
+
+def to_plain(obj):
+    """HistoryBuffers and numpy values -> tagged dicts of tensors / Python numbers."""
+    from mmengine.logging import HistoryBuffer
+
+    if isinstance(obj, HistoryBuffer):
+        log, count = obj.data
+        return {_TAG: "HistoryBuffer", "log": torch.as_tensor(np.asarray(log, np.float64)),
+                "count": torch.as_tensor(np.asarray(count, np.float64)), "max_length": int(obj.max_length)}
+    if isinstance(obj, np.ndarray):
+        if obj.dtype == object:
+            raise TypeError("object arrays cannot go into a weights-only checkpoint")
+        return {_TAG: "ndarray", "data": torch.from_numpy(np.ascontiguousarray(obj).copy())}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, dict):
+        return {k: to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(to_plain(v) for v in obj)
+    return obj
+
+
+def from_plain(obj):
+    """Inverse of :func:`to_plain`."""
+    from mmengine.logging import HistoryBuffer
+
+    if isinstance(obj, dict):
+        tag = obj.get(_TAG)
+        if tag == "HistoryBuffer":
+            return HistoryBuffer(obj["log"].tolist(), obj["count"].tolist(), obj["max_length"])
+        if tag == "ndarray":
+            return obj["data"].numpy()
+        return {k: from_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(from_plain(v) for v in obj)
+    return obj
+
+
+def weights_only_hook(meta: dict):
+    """An mmengine hook making resumable checkpoints safe-loadable; ``meta`` is stored in them."""
+    from mmengine.hooks import Hook
+
+    class WeightsOnlyCheckpointHook(Hook):
+        priority = "VERY_LOW"
+
+        def before_save_checkpoint(self, runner, checkpoint: dict) -> None:
+            for key in ("message_hub", "meta"):
+                if key in checkpoint:
+                    checkpoint[key] = to_plain(checkpoint[key])
+            checkpoint.setdefault("meta", {})["omnilidar"] = to_plain(meta)
+
+        def after_load_checkpoint(self, runner, checkpoint: dict) -> None:
+            for key in ("message_hub", "meta"):
+                if key in checkpoint:
+                    checkpoint[key] = from_plain(checkpoint[key])
+
+    return WeightsOnlyCheckpointHook()
+
+
+def save_payload(payload: dict, out: str | Path) -> None:
+    """Write a final segmentor payload atomically."""
+    with atomic_path(out) as tmp:
+        torch.save({"format": FORMAT, **payload}, tmp)
+
+
+def _safe_load(path: Path, what: str):
+    if not path.is_file():
+        raise InputError(path, f"{what} not found")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # corrupt, truncated or unsafe pickles
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise InputError(path, f"not a readable {what} (loaded with weights_only=True): {first}") from None
+
+
+def load_payload(path: str | Path) -> dict:
+    """Load a payload written by :func:`save_payload` (weights-only)."""
+    path = Path(path)
+    payload = _safe_load(path, "segmentor checkpoint")
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise InputError(path, f"not an omnilidar segmentor checkpoint ({FORMAT})")
+    return payload
+
+
+def load_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
+    """A user's checkpoint as a plain state dict (weights-only).
+
+    Accepts our payload, ``{"state_dict": {...}}`` or a bare ``{name: tensor}`` dict.
+    """
+    path = Path(path)
+    obj = _safe_load(path, "checkpoint")
+    if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
+        obj = obj["state_dict"]
+    if not isinstance(obj, dict) or not obj or not all(isinstance(v, torch.Tensor) for v in obj.values()):
+        raise InputError(path, "checkpoint is not a state dict of tensors")
+    bad = [k for k, v in obj.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise InputError(path, f"checkpoint holds NaN or infinite weights (first: {bad[0]})")
+    return obj

@@ -1,0 +1,175 @@
+"""Assembling the segmentation experiment targets from evaluation files.
+
+Each evaluation file (``evaluate-segmentor``) names its run through the
+checkpoint's training info (role, backbone, label percent, generated domains).
+An experiment groups them into supervised-only vs GDA per backbone, adds what
+the paper reports (REFERENCE section 9) and, for the corrupted sets, mCE / mRR.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from omnilidar.downstream.seg.robustness import ROBO3D_MINKUNET18, robustness
+from omnilidar.errors import InputError
+
+KINDS = ("semkitti", "semkittic", "nusc_beam32", "semanticstf")
+
+# The paper's mIoU (percent): backbone -> percent -> (supervised-only, OmniLiDAR GDA).
+PAPER = {
+    "semkitti": {
+        "minkunet": {1: (40.39, 59.49), 10: (60.90, 65.07), 20: (62.84, 66.59)},
+        "spvcnn": {1: (37.86, 59.73), 10: (59.07, 65.99), 20: (61.16, 66.36)},
+    },
+    "nusc_beam32": {"spvcnn": {1: (30.45, 38.38)}},
+    "semkittic": {"minkunet": {"supervised_only": {"mce": 100.0},
+                               "gda": {"mce": 91.02, "miou": {"fog": 59.14, "wet_ground": 61.34, "snow": 54.79,
+                                                              "beam_missing": 61.37}}}},
+}
+
+
+def read_evaluation(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "evaluation file not found")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise InputError(path, f"not valid JSON: {err}") from None
+    if "sets" not in doc or "train" not in doc:
+        raise InputError(path, "not an evaluate-segmentor output")
+    doc["_path"] = str(path)
+    return doc
+
+
+def _summary(scores: dict) -> dict:
+    return {k: scores[k] for k in ("miou", "miou_nanmean", "accuracy", "iou", "num_scans")}
+
+
+def group_runs(evals: list[dict]) -> dict:
+    """backbone -> role -> evaluation document (one each)."""
+    runs: dict[str, dict[str, dict]] = {}
+    for ev in evals:
+        backbone, role = ev["model"]["backbone"], ev["train"]["info"]["role"]
+        if role in runs.setdefault(backbone, {}):
+            raise InputError(ev["_path"], f"a second {role} run of {backbone}")
+        runs[backbone][role] = ev
+    return runs
+
+
+def _paper_pair(kind: str, backbone: str, percent: float):
+    pair = PAPER.get(kind, {}).get(backbone, {}).get(int(round(percent)))
+    return None if pair is None else {"supervised_only": pair[0], "gda": pair[1]}
+
+
+def _run_record(ev: dict, sets: list[str]) -> dict:
+    info = ev["train"]["info"]
+    return {
+        "checkpoint": ev["checkpoint"], "model": ev["model"], "seed": ev["seed"],
+        "train_scans": {"real": ev["train"]["num_real"], "generated": ev["train"]["num_generated"]},
+        "mixing": ev["train"]["mixing"] if info["role"] == "gda" else None,
+        "domains": info.get("domains", []), "iterations": ev["train"]["iterations"],
+        "scores": {s: _summary(ev["sets"][s]) for s in sets},
+    }
+
+
+def compare(kind: str, evals: list[dict]) -> dict:
+    """Supervised-only vs GDA per backbone on the 'val' set (semkitti, nusc_beam32)."""
+    out = {}
+    for backbone, roles in group_runs(evals).items():
+        missing = {"supervised_only", "gda"} - set(roles)
+        if missing:
+            raise InputError(None, f"{backbone}: no {', '.join(sorted(missing))} evaluation given")
+        sup, gda = _run_record(roles["supervised_only"], ["val"]), _run_record(roles["gda"], ["val"])
+        pct = roles["gda"]["train"]["info"]["percent"]
+        out[backbone] = {
+            "supervised_only": sup, "gda": gda,
+            "miou_gain": gda["scores"]["val"]["miou"] - sup["scores"]["val"]["miou"],
+            "gda_helped": gda["scores"]["val"]["miou"] > sup["scores"]["val"]["miou"],
+            "paper_miou": _paper_pair(kind, backbone, pct),
+        }
+    return out
+
+
+def _corruption_table(ev: dict) -> dict[str, dict[str, float]]:
+    table: dict[str, dict[str, float]] = {}
+    for name, scores in ev["sets"].items():
+        if "/" in name:
+            corruption, severity = name.split("/", 1)
+            table.setdefault(corruption, {})[severity] = scores["miou"]
+    return table
+
+
+def robustness_result(evals: list[dict]) -> dict:
+    """mCE / mRR of supervised-only and GDA, normalised by our supervised-only model
+    (the paper's convention) and by Robo3D's MinkUNet18 table."""
+    out = {}
+    for backbone, roles in group_runs(evals).items():
+        if set(roles) != {"supervised_only", "gda"}:
+            raise InputError(None, f"{backbone}: need one supervised-only and one GDA evaluation")
+        base = _corruption_table(roles["supervised_only"])
+        if not base:
+            raise InputError(roles["supervised_only"]["_path"], "holds no corrupted sets (NAME = corruption/severity)")
+        res = {}
+        for role, ev in roles.items():
+            table = _corruption_table(ev)
+            if set(table) != set(base):
+                raise InputError(ev["_path"], "corrupted sets differ from the supervised-only run's")
+            clean = ev["sets"]["val"]["miou"]
+            unknown = [c for c in table if c not in ROBO3D_MINKUNET18]
+            res[role] = {
+                **_run_record(ev, list(ev["sets"])),
+                "clean_miou": clean,
+                "corrupted_miou": {c: {s: v for s, v in sorted(t.items())} for c, t in table.items()},
+                "normalised_by_supervised_only": robustness(table, clean, baseline_sets=base),
+                "normalised_by_robo3d_minkunet18": None if unknown else robustness(
+                    table, clean, baseline_table=ROBO3D_MINKUNET18),
+            }
+        out[backbone] = {**res, "paper": PAPER["semkittic"].get(backbone)}
+    return out
+
+
+def weather_result(evals: list[dict]) -> dict:
+    """Per weather subset: supervised-only vs GDA mIoU (plus the clean val set)."""
+    out = {}
+    for backbone, roles in group_runs(evals).items():
+        if set(roles) != {"supervised_only", "gda"}:
+            raise InputError(None, f"{backbone}: need one supervised-only and one GDA evaluation")
+        sets = list(roles["supervised_only"]["sets"])
+        out[backbone] = {
+            "supervised_only": _run_record(roles["supervised_only"], sets),
+            "gda": _run_record(roles["gda"], sets),
+            "miou_gain": {s: roles["gda"]["sets"][s]["miou"] - roles["supervised_only"]["sets"][s]["miou"]
+                          for s in sets},
+        }
+    return out
+
+
+def figure_panels(kind: str, evals: list[dict]) -> list[dict]:
+    """Per-class IoU panels (supervised-only vs GDA) for the figure of an experiment."""
+    panels = []
+    for backbone, roles in sorted(group_runs(evals).items()):
+        sets = ["val"] if kind in ("semkitti", "nusc_beam32") else list(roles["supervised_only"]["sets"])
+        for s in sets:
+            classes = roles["supervised_only"]["class_names"]
+            series = {("supervised-only" if r == "supervised_only" else "GDA"): roles[r]["sets"][s]
+                      for r in ("supervised_only", "gda") if r in roles}
+            panels.append({"title": f"{backbone} - {s}", "classes": classes, "series": series})
+    return panels
+
+
+def timings(evals: list[dict], pseudo_sidecars: list[dict]) -> dict:
+    """Wall time (s) per stage: labeler, pseudo-labelling, every training and evaluation."""
+    t: dict[str, float] = {}
+    labelers = {json.dumps(s["labeler"].get("train", {}).get("seconds")) for s in pseudo_sidecars}
+    if pseudo_sidecars:
+        t["labeler"] = pseudo_sidecars[0]["labeler"].get("train", {}).get("seconds")
+        t["pseudo_labels"] = round(sum(s["seconds"] for s in pseudo_sidecars), 2)
+        if len(labelers) > 1:
+            raise InputError(None, "pseudo-label shards were made by different labelers")
+    for ev in evals:
+        name = f"{ev['model']['backbone']}_{ev['train']['info']['role']}"
+        t[f"train_{name}"] = ev["train"]["seconds"]
+        t[f"evaluate_{name}"] = ev["seconds"]
+    return t

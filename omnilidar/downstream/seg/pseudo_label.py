@@ -1,0 +1,114 @@
+"""Pseudo-labels for generated scans, and pairing them with their samples.
+
+One pseudo-label shard per sample shard::
+
+    OUT/labels/%06d.label    uint32 raw SemanticKITTI ids (train ids through LEARNING_MAP_INV)
+    OUT/sidecar.json         sample shard, scan names and point counts, labeler
+
+named like the sample shard's ``velodyne/%06d.bin``. A generated scan with no
+points gets an empty label file (its count matches). When a GDA run reads a
+pseudo-label shard, :func:`generated_records` checks it against its sample
+shard (same scan names, one label per point) and fails with one clear error
+otherwise.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from omnilidar.downstream.seg.evaluate import predict_points
+from omnilidar.downstream.seg.label_spaces import get_label_space
+from omnilidar.errors import InputError
+from omnilidar.io import semantickitti
+from omnilidar.io.atomic import atomic_path
+
+SIDECAR = "sidecar.json"
+
+
+def sample_scans(sample_dir: str | Path) -> list[Path]:
+    """The ``velodyne/*.bin`` scans of a sample shard, sorted by name."""
+    velo = Path(sample_dir) / "velodyne"
+    if not velo.is_dir():
+        raise InputError(sample_dir, "sample shard has no velodyne/ folder")
+    scans = sorted(velo.glob("*.bin"))
+    if not scans:
+        raise InputError(velo, "sample shard holds no .bin scans")
+    return scans
+
+
+@torch.no_grad()
+def pseudo_label_shard(model: torch.nn.Module, payload: dict, sample_dir: str | Path, out: str | Path,
+                       batch_size: int = 2) -> dict:
+    """Label every scan of a sample shard; write the pseudo-label shard ``out`` atomically."""
+    space = get_label_space(payload["label_space"])
+    scans = sample_scans(sample_dir)
+    started = time.time()
+    records = []
+    hist = np.zeros(space.num_ids, np.int64)
+    with atomic_path(out) as tmp:
+        (tmp / "labels").mkdir(parents=True)
+        for start in range(0, len(scans), batch_size):
+            paths = scans[start:start + batch_size]
+            clouds = [semantickitti.read_points(p) for p in paths]
+            nonempty = [i for i, c in enumerate(clouds) if len(c)]
+            preds = dict(zip(nonempty, predict_points(
+                model, [clouds[i] for i in nonempty], payload["voxel_size"], space.num_ids,
+                [paths[i] for i in nonempty]))) if nonempty else {}
+            for i, path in enumerate(paths):
+                train_ids = preds.get(i, np.zeros(0, np.uint8))
+                hist += np.bincount(train_ids, minlength=space.num_ids)
+                semantickitti.write_label(tmp / "labels" / f"{path.stem}.label", semantickitti.to_raw_ids(train_ids))
+                records.append({"name": path.stem, "num_points": len(clouds[i])})
+            print(f"pseudo-labelled {min(start + batch_size, len(scans))}/{len(scans)} scans", flush=True)
+        sidecar = {
+            "sample_shard": str(sample_dir),
+            "scans": records,
+            "labeler": {"model": payload["model"], "voxel_size": payload["voxel_size"],
+                        "train": payload.get("train", {})},
+            "class_histogram": {n: int(c) for n, c in zip(("ignore", *space.class_names), hist)},
+            "seconds": round(time.time() - started, 2),
+        }
+        (tmp / SIDECAR).write_text(json.dumps(sidecar, indent=1, default=str))
+    return sidecar
+
+
+def generated_records(sample_dirs: list[str | Path], label_dirs: list[str | Path]) -> tuple[list[dict], int]:
+    """Training records of generated scans: (records, number of empty scans left out).
+
+    Shards are paired in order; each pseudo-label shard must hold exactly one
+    label file per scan of its sample shard with one label per point.
+    """
+    if len(sample_dirs) != len(label_dirs):
+        raise InputError(None, f"{len(sample_dirs)} sample shards but {len(label_dirs)} pseudo-label shards")
+    records, empty = [], 0
+    for sdir, ldir in zip(sample_dirs, label_dirs):
+        scans = sample_scans(sdir)
+        labels_dir = Path(ldir) / "labels"
+        if not labels_dir.is_dir():
+            raise InputError(ldir, "pseudo-label shard has no labels/ folder")
+        labels = {p.stem: p for p in labels_dir.glob("*.label")}
+        names = [s.stem for s in scans]
+        if sorted(labels) != names:
+            missing = sorted(set(names) - set(labels))
+            extra = sorted(set(labels) - set(names))
+            raise InputError(ldir, f"does not match sample shard {sdir}: {len(scans)} scans, {len(labels)} labels"
+                                   + (f", first scan without label {missing[0]}" if missing else "")
+                                   + (f", first label without scan {extra[0]}" if extra else ""))
+        for scan in scans:
+            n = scan.stat().st_size // 16
+            if scan.stat().st_size % 16:
+                raise InputError(scan, "size is not a multiple of 16 bytes (float32 x,y,z,intensity)")
+            count = labels[scan.stem].stat().st_size / 4
+            if count != n:
+                raise InputError(labels[scan.stem], f"holds {count:g} labels but sample scan {scan} has {n} points "
+                                                    f"(pseudo-label shard does not match its sample shard)")
+            if n == 0:
+                empty += 1
+                continue
+            records.append({"points": str(scan), "labels": str(labels[scan.stem]), "format": "semantickitti"})
+    return records, empty

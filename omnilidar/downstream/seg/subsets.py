@@ -1,0 +1,82 @@
+"""Deterministic label subsets: one scan out of every k of a split.
+
+A fraction f keeps scans 0, k, 2k, ... of the split in index order with
+k = round(1 / f) (1 % = every 100th scan, 10 % = every 10th, 100 % = all). The
+choice involves no randomness, so the same index always gives the same subset,
+and the scans are spread evenly over the sequences instead of clustered.
+
+A subset file is JSON::
+
+    {"dataset": str, "split": str, "fraction": float, "every": k,
+     "num_scans": int, "source_scans": int, "entries": [index entries...]}
+
+where each entry is the dataset index's own entry (``points``, ``labels``, ...).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from omnilidar.data.index import read_index
+from omnilidar.errors import InputError
+from omnilidar.io.atomic import write_text_atomic
+
+FORMAT = "omnilidar-subset/1"
+
+
+def every_k(fraction: float) -> int:
+    """k of "one scan out of every k" for a fraction in (0, 1]."""
+    if not 0 < fraction <= 1:
+        raise InputError(None, f"subset fraction must lie in (0, 1], got {fraction}")
+    return max(1, round(1.0 / fraction))
+
+
+def select_every_k(entries: list[dict], fraction: float) -> list[dict]:
+    """Scans 0, k, 2k, ... of ``entries`` (at least one scan when any exist)."""
+    return list(entries[:: every_k(fraction)])
+
+
+def make_subset(index_path: str | Path, split: str, fraction: float) -> dict:
+    """The subset of ``split`` of a dataset index, as the JSON document above."""
+    index = read_index(index_path)
+    splits = index.get("splits", {})
+    if split not in splits:
+        raise InputError(index_path, f"has no split {split!r} (splits: {', '.join(splits)})")
+    entries = splits[split]
+    missing = [e["points"] for e in entries if not e.get("labels")]
+    if missing:
+        raise InputError(missing[0], f"scan of split {split} has no label file; label subsets need labels")
+    chosen = select_every_k(entries, fraction)
+    if not chosen:
+        raise InputError(index_path, f"split {split} holds no scans")
+    return {
+        "format": FORMAT,
+        "dataset": index.get("dataset"),
+        "split": split,
+        "fraction": float(fraction),
+        "every": every_k(fraction),
+        "num_scans": len(chosen),
+        "source_scans": len(entries),
+        "entries": chosen,
+    }
+
+
+def write_subset(subset: dict, path: str | Path) -> None:
+    write_text_atomic(path, json.dumps(subset, indent=1))
+
+
+def read_subset(path: str | Path) -> dict:
+    """Read a subset file written by :func:`write_subset`, checking its shape."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "subset list not found (run the make_subset rule)")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise InputError(path, f"not valid JSON: {err}") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT or not isinstance(doc.get("entries"), list):
+        raise InputError(path, f"not a subset list ({FORMAT})")
+    if not doc["entries"]:
+        raise InputError(path, "subset list holds no scans")
+    return doc

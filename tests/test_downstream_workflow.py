@@ -1,0 +1,181 @@
+"""The segmentation GDA stage in the workflow: DAG shape of the targets and what
+reruns when a downstream or a generator setting changes (dry runs)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from workflow_helpers import copy_workflow, planned_jobs
+
+# Used only while rules/generator.smk is not in the checkout: the sampling rule's
+# contract (rule sample_domain, sample_shards(domain)) with the generator's settings
+# as its params, sampling replaced by copying a domain shard's scans.
+GENERATOR_STUB = '''
+def sample_shards(domain):
+    n = -(-config["generator"]["sampling"]["scans_per_domain"] // config["generator"]["sampling"]["scans_per_shard"])
+    return [f"{DATA}/samples/{domain}/shard_{k}" for k in range(n)]
+
+
+rule sample_domain:
+    input:
+        f"{DATA}/domains/{{domain}}/shard_0",
+    output:
+        directory(f"{DATA}/samples/{{domain}}/shard_{{shard}}"),
+    params:
+        settings=settings("generator"),
+    log:
+        "logs/samples/{domain}_{shard}.log",
+    shell:
+        "mkdir -p {output}/velodyne > {log} 2>&1"
+'''
+
+
+def wire_downstream(workdir):
+    """Include the domain, generator and downstream rules in a workflow copy
+    (and their config sections) when the checkout does not yet."""
+    snakefile = workdir / "Snakefile"
+    text = snakefile.read_text()
+    includes = ["rules/domains.smk"]
+    if (workdir / "rules" / "generator.smk").exists():
+        includes.append("rules/generator.smk")
+    else:
+        (workdir / "rules" / "generator_stub.smk").write_text(GENERATOR_STUB)
+        includes.append("rules/generator_stub.smk")
+    includes.append("rules/downstream.smk")
+    for inc in includes:
+        if inc not in text:
+            text = text.replace("\n\nrule all:", f'\ninclude: "{inc}"\n\n\nrule all:', 1)
+    snakefile.write_text(text)
+    schema = workdir / "workflow" / "schemas" / "config.schema.yaml"
+    doc = yaml.safe_load(schema.read_text())
+    for section in ("domains", "generator", "downstream"):
+        if section not in doc["properties"]:
+            schema.write_text(schema.read_text().rstrip("\n") + f"\n  {section}:\n    $ref: {section}.schema.yaml\n")
+    return workdir
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    return wire_downstream(copy_workflow(tmp_path_factory.mktemp("wf_downstream")))
+
+
+def _jobs(workdir, *args):
+    return planned_jobs(workdir, *args)
+
+
+def test_headline_dag(workdir):
+    jobs = _jobs(workdir, "results/semkitti_1pct.json")
+    assert jobs["train_labeler"] == 1
+    assert jobs["train_supervised"] == 2 and jobs["train_gda"] == 2  # MinkUNet, SPVCNN
+    assert jobs["evaluate_segmentor"] == 4
+    assert jobs["make_subset"] == 1 and jobs["semkitti_result"] == 1
+    assert jobs["pseudo_label"] == jobs["sample_domain"] >= 1
+    # Only the Vehicle domain is sampled; nothing of nuScenes or the corrupted sets.
+    assert "build_corrupted" not in jobs and "synthesize_nuscenes" not in jobs
+
+
+def test_every_target_plans(workdir):
+    jobs = _jobs(workdir, "segmentation")
+    # semkitti 1/10/20: 2 backbones x 2 runs each; semkittic and semanticstf share the
+    # 100 % supervised-only MinkUNet; nuScenes 1/10/20/100: 2 x 2 each.
+    assert jobs["train_supervised"] == 3 * 2 + 1 + 4 * 2
+    assert jobs["train_gda"] == 3 * 2 + 1 + 1 + 4 * 2
+    assert jobs["train_labeler"] == 1
+    assert jobs["build_corrupted"] == 12
+    assert jobs["make_subset"] == 3 + 1 + 4
+    assert {"semkitti_result", "semkittic_result", "nusc_beam32_result", "semanticstf_result"} <= set(jobs)
+
+
+def test_supervised_runs_and_labeler_take_no_generator_input(workdir):
+    jobs = _jobs(workdir, "data/segmentation/semantickitti/minkunet_1pct_real.pt", "data/labeler/semantickitti.pt")
+    assert "sample_domain" not in jobs and "train_generator" not in jobs and "build_domain" not in jobs
+    assert jobs["train_supervised"] == 1 and jobs["train_labeler"] == 1
+
+
+# Stands in for the omnilidar CLI in the rerun tests: creates the outputs named by
+# --out / --figure (a directory when the name has no file suffix), so that Snakemake
+# runs every job for real and records its params, quickly.
+FAKE_CLI = """#!{python}
+import sys
+from pathlib import Path
+args = sys.argv[1:]
+for flag in ("--out", "--figure"):
+    if flag in args:
+        p = Path(args[args.index(flag) + 1])
+        if p.suffix in (".json", ".pt", ".png", ".npz", ".pkl"):
+            p.parent.mkdir(parents=True, exist_ok=True)
+            p.write_text("{{}}")
+        else:
+            p.mkdir(parents=True, exist_ok=True)
+"""
+
+
+def _fake_completed_run(workdir, target, cfg, tmp_path):
+    """Run the target's whole DAG with the fake CLI, so the next dry run shows only
+    what a config change reruns."""
+    bin_dir = tmp_path / "fakebin"
+    bin_dir.mkdir()
+    fake = bin_dir / "omnilidar"
+    fake.write_text(FAKE_CLI.format(python=sys.executable))
+    fake.chmod(0o755)
+    env = dict(os.environ, PYTHONPATH=str(workdir), PYTHONDONTWRITEBYTECODE="1",
+               PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", target, "--configfile", str(cfg)]
+    out = subprocess.run(cmd, cwd=workdir, env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    assert _jobs(workdir, target, "--configfile", str(cfg)) == {}
+
+
+@pytest.fixture(scope="module")
+def completed(tmp_path_factory):
+    wd = wire_downstream(copy_workflow(tmp_path_factory.mktemp("wf_rerun")))
+    cfg = wd / "rerun.yaml"
+    cfg.write_text(yaml.safe_dump({"seed": 0}))
+    _fake_completed_run(wd, "results/semkitti_1pct.json", cfg, tmp_path_factory.mktemp("fake"))
+    return wd, cfg
+
+
+def _with_change(wd, cfg, change: dict):
+    doc = yaml.safe_load(cfg.read_text())
+    for dotted, value in change.items():
+        node = doc
+        *parents, leaf = dotted.split(".")
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[leaf] = value
+    changed = wd / "changed.yaml"
+    changed.write_text(yaml.safe_dump(doc))
+    return _jobs(wd, "results/semkitti_1pct.json", "--configfile", str(changed))
+
+
+def test_downstream_change_reruns_only_runs_and_evaluation(completed):
+    wd, cfg = completed
+    jobs = _with_change(wd, cfg, {"downstream.schedule.iterations": 41})
+    assert set(jobs) == {"train_supervised", "train_gda", "evaluate_segmentor", "semkitti_result"}
+
+
+def test_mixing_change_reruns_only_gda_runs(completed):
+    wd, cfg = completed
+    jobs = _with_change(wd, cfg, {"downstream.mixing.mode": "ratio"})
+    assert set(jobs) == {"train_gda", "evaluate_segmentor", "semkitti_result"}
+    assert jobs["evaluate_segmentor"] == 2
+
+
+def test_labeler_change_reruns_labeler_pseudo_labels_and_gda_not_supervised(completed):
+    wd, cfg = completed
+    jobs = _with_change(wd, cfg, {"downstream.labeler.schedule.iterations": 81})
+    assert {"train_labeler", "pseudo_label", "train_gda"} <= set(jobs)
+    assert "train_supervised" not in jobs and "sample_domain" not in jobs
+
+
+def test_generator_change_spares_supervised_runs_and_labeler(completed):
+    wd, cfg = completed
+    jobs = _with_change(wd, cfg, {"generator.sampling.steps": 21})
+    assert {"sample_domain", "pseudo_label", "train_gda", "semkitti_result"} <= set(jobs)
+    assert "train_supervised" not in jobs and "train_labeler" not in jobs
+    assert jobs["evaluate_segmentor"] == 2  # the GDA runs' evaluations only
