@@ -16,7 +16,17 @@ include: "rules/evaluation.smk"
 include: "rules/downstream.smk"
 
 
+onsuccess:
+    # Tell the user where the results are (the JSON files and their figures).
+    import glob
+
+    produced = sorted(glob.glob("results/*.json"))
+    if produced:
+        print("Results: " + ", ".join(produced) + " (figures in results/figures/)")
+
+
 rule all:
     default_target: True
     input:
+        "results/semkitti_1pct.json",
         "results/data_summary.json",
