@@ -100,3 +100,22 @@ def test_beam_reduce_recovers_rings_on_real_scan(kitti_rings):
     assert 0.45 < len(out) / len(scan) < 0.55
     kept = np.flatnonzero(ref % 2 == 0)
     assert len(out) == len(kept) and np.array_equal(out.semantic, scan.semantic[kept])
+
+
+def test_a_units_calibration_recovers_rings_of_cropped_and_thinned_scans(kitti_rings):
+    """Calibrated once on a full sweep, the unit's beam lines label crops that miss beams
+    (front crop: the car body hides the lowest beams) and Beam-32-thinned sweeps."""
+    from omnilidar.data.rings import calibrate_rings
+
+    pts, ref, _ = kitti_rings
+    calibration = calibrate_rings(pts, HDL64)
+    assert calibration is not None and calibration.intercept.shape == (64,)
+    other = np.fromfile(REAL / "kitti_object" / "velodyne" / "000001.bin", np.float32).reshape(-1, 4)
+    other_ref = _firing_order_rings(other)
+    az = np.degrees(np.arctan2(other[:, 1], other[:, 0]))
+    for keep in (np.abs(az) < 45, other_ref % 2 == 0, az > 0):
+        rings = recover_rings(other[keep], HDL64, calibration=calibration)
+        assert (rings == other_ref[keep]).mean() > 0.99
+    # Without the unit's calibration, a front crop falls back to the nominal table.
+    front = np.abs(az) < 45
+    assert (recover_rings(other[front], HDL64) == other_ref[front]).mean() < 0.5

@@ -23,6 +23,8 @@ falls back to nearest-angle binning against the nominal table.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.ndimage import median_filter
 
@@ -234,33 +236,30 @@ def _lines_explain(s, y, line, t, h, sensor: SensorSpec) -> bool:
     return bool(np.mean(resid > 0.25 * pitch) <= 0.05)
 
 
-def recover_rings(points: np.ndarray, sensor: SensorSpec, calibrate: bool = True) -> np.ndarray:
-    """Ring index per point, (N,) int16, 0 = top beam.
+@dataclass(frozen=True)
+class RingCalibration:
+    """Per-beam lines z/rho = intercept + slope / rho of one sensor unit (index = beam id,
+    0 = top), fitted on a full sweep by :func:`calibrate_rings`. A unit's beam angles
+    and laser heights do not change between sweeps, so the calibration of one full
+    sweep recovers the rings of cropped or thinned sweeps of the same unit, where
+    beams are missing and a per-scan fit cannot tell which line is which beam."""
 
-    Independent of point order (a shuffled scan gets the same rings) and of the sweep
-    being complete. With ``calibrate`` (default) the beam angles and per-laser
-    height offsets are fitted to this scan (see the module docstring); without it,
-    or when the scan has fewer than 20 usable points per beam, the nearest nominal
-    beam angle decides. Points closer than 0.5 m horizontally are treated as at
-    0.5 m. Points with a non-finite coordinate get -1.
-    """
-    finite, s, y = _elevation_points(points, sensor.mount_pitch_deg)
-    rings = np.full(len(s), -1, np.int16)
-    if not finite.any():
-        return rings
-    s_f, y_f = s[finite], y[finite]
-    if not calibrate or finite.sum() < _MIN_POINTS_PER_BEAM * sensor.num_beams or sensor.num_beams < 2:
-        rings[finite] = _nominal_rings(y_f, sensor)
-        return rings
+    intercept: np.ndarray
+    slope: np.ndarray
+
+
+def _fit_lines(s_f: np.ndarray, y_f: np.ndarray, sensor: SensorSpec):
+    """Per-scan line fit: (line intercepts, slopes, beam id per line), or None when the
+    scan cannot be calibrated (too few points, or the line model does not hold)."""
+    if len(s_f) < _MIN_POINTS_PER_BEAM * sensor.num_beams or sensor.num_beams < 2:
+        return None
     rng = np.abs(y_f / s_f) * np.sqrt(1.0 + 1.0 / (y_f * y_f + 1e-300))  # |z|, rho -> range
     fit = (rng > sensor.min_range) & (rng < sensor.max_range)  # drop no-return / body points
     if fit.sum() < _MIN_POINTS_PER_BEAM * sensor.num_beams:
-        rings[finite] = _nominal_rings(y_f, sensor)
-        return rings
+        return None
     t_peaks, h_peaks, votes = _hough_lines(s_f[fit], y_f[fit], sensor)
     if len(t_peaks) < 2:
-        rings[finite] = _nominal_rings(y_f, sensor)
-        return rings
+        return None
     order = np.argsort(t_peaks)
     t_peaks, h_peaks, votes = t_peaks[order], h_peaks[order], votes[order]
     t_lines, beam = _match_to_beams(t_peaks, votes, sensor)
@@ -269,15 +268,60 @@ def recover_rings(points: np.ndarray, sensor: SensorSpec, calibrate: bool = True
     for _ in range(_REFINE_ITERS):
         line = _nearest_line(s_fit, y_fit, t_lines, h_lines)
         t_lines, h_lines = _refit_lines(s_fit, y_fit, line, t_lines, h_lines)
-    line = _nearest_line(s_f, y_f, t_lines, h_lines)
-    if not _lines_explain(s_f[fit], y_f[fit], line[fit], t_lines, h_lines, sensor):
+    line = _nearest_line(s_fit, y_fit, t_lines, h_lines)
+    if not _lines_explain(s_fit, y_fit, line, t_lines, h_lines, sensor):
+        return None
+    return t_lines, h_lines, beam
+
+
+def calibrate_rings(points: np.ndarray, sensor: SensorSpec) -> RingCalibration | None:
+    """Fit every beam's line on a full sweep (all beams visible); None if that fails."""
+    finite, s, y = _elevation_points(points, sensor.mount_pitch_deg)
+    fitted = _fit_lines(s[finite], y[finite], sensor)
+    if fitted is None or len(fitted[0]) != sensor.num_beams:
+        return None
+    t_lines, h_lines, beam = fitted
+    intercept, slope = np.empty(sensor.num_beams), np.empty(sensor.num_beams)
+    intercept[beam], slope[beam] = t_lines, h_lines
+    return RingCalibration(intercept=intercept, slope=slope)
+
+
+def recover_rings(points: np.ndarray, sensor: SensorSpec, calibrate: bool = True,
+                  calibration: RingCalibration | None = None) -> np.ndarray:
+    """Ring index per point, (N,) int16, 0 = top beam.
+
+    Independent of point order (a shuffled scan gets the same rings) and of the sweep
+    being complete. With a ``calibration`` of this sensor unit (:func:`calibrate_rings`
+    on one full sweep), each point goes to the nearest calibrated beam line: this also
+    holds for cropped and thinned sweeps. Otherwise, with ``calibrate`` (default), the
+    beam angles and per-laser height offsets are fitted to this scan (see the module
+    docstring); without it, or when the fit fails (too few points per beam, beams
+    missing so the lines cannot be told apart, motion-compensated sweeps), the nearest
+    nominal beam angle decides. Points closer than 0.5 m horizontally are treated as
+    at 0.5 m. Points with a non-finite coordinate get -1.
+    """
+    finite, s, y = _elevation_points(points, sensor.mount_pitch_deg)
+    rings = np.full(len(s), -1, np.int16)
+    if not finite.any():
+        return rings
+    s_f, y_f = s[finite], y[finite]
+    if calibration is not None:
+        if len(calibration.intercept) != sensor.num_beams:
+            raise InputError(None, f"recover_rings: calibration has {len(calibration.intercept)} beams, "
+                                   f"the sensor {sensor.num_beams}")
+        rings[finite] = _nearest_line(s_f, y_f, calibration.intercept, calibration.slope)
+        return rings
+    fitted = _fit_lines(s_f, y_f, sensor) if calibrate else None
+    if fitted is None:
         rings[finite] = _nominal_rings(y_f, sensor)
         return rings
-    rings[finite] = beam[line]
+    t_lines, h_lines, beam = fitted
+    rings[finite] = beam[_nearest_line(s_f, y_f, t_lines, h_lines)]
     return rings
 
 
-def beam_reduce(scan: Scan, sensor: SensorSpec, keep_every: int = 2) -> Scan:
+def beam_reduce(scan: Scan, sensor: SensorSpec, keep_every: int = 2,
+                calibration: RingCalibration | None = None) -> Scan:
     """Keep the rings whose id is a multiple of ``keep_every`` (Beam-32 from 64 beams).
 
     Uses ``scan.ring`` when set, else :func:`recover_rings`. Returns a new scan with
@@ -286,7 +330,7 @@ def beam_reduce(scan: Scan, sensor: SensorSpec, keep_every: int = 2) -> Scan:
     """
     if isinstance(keep_every, bool) or int(keep_every) != keep_every or keep_every < 1:
         raise InputError(None, f"beam_reduce: keep_every must be a positive integer, got {keep_every!r}")
-    rings = scan.ring if scan.ring is not None else recover_rings(scan.points, sensor)
+    rings = scan.ring if scan.ring is not None else recover_rings(scan.points, sensor, calibration=calibration)
     keep = (rings >= 0) & (rings % int(keep_every) == 0)
     out = scan.select(keep)
     if out.ring is None:
