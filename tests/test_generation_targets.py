@@ -73,7 +73,7 @@ def fixture_dir(tmp_path_factory) -> Path:
     save_self_trained(root / "frid.pt", "frid", arch, "feedbeef", build_model("frid", arch), {})
     arch = {"num_classes": 19}
     save_self_trained(root / "fpd.pt", "fpd", arch, "cafe", build_model("fpd", arch), {})
-    (root / "kitti360.json").write_text(json.dumps({"splits": {"val": [
+    (root / "kitti360.json").write_text(json.dumps({"splits": {"test": [
         {"points": str(root / "000000.bin"), "labels": None}, {"points": str(root / "000001.bin"), "labels": None}]}}))
     effects = {"effects": {"fog": {"primary_error": "err_fog_fraction", "rows": [
         {"knob": "samples", "value": v, "time_s": 0.01 * v, "errors": {"err_fog_fraction": 1.0 / v},

@@ -54,15 +54,15 @@ def run(args) -> int:
         sets[name] = semantickitti_dir_records(folder)
     if not sets:
         raise InputError(None, "nothing to evaluate: give --index and/or --set")
-    torch.set_grad_enabled(False)
-    model, payload = load_segmentor(args.checkpoint, backend, device)
-    space = label_space_of(payload)
-    scores = {}
-    for name, records in sets.items():
-        scores[name] = evaluate_records(model, records, space, payload["voxel_size"],
-                                        settings["evaluation"]["batch_size"])
-        print(f"{name}: mIoU {100 * scores[name]['miou']:.2f} (nanmean {100 * scores[name]['miou_nanmean']:.2f}), "
-              f"accuracy {100 * scores[name]['accuracy']:.2f}, {scores[name]['num_scans']} scans", flush=True)
+    with torch.no_grad():  # a context, not a global switch: callers may run in-process
+        model, payload = load_segmentor(args.checkpoint, backend, device)
+        space = label_space_of(payload)
+        scores = {}
+        for name, records in sets.items():
+            scores[name] = evaluate_records(model, records, space, payload["voxel_size"],
+                                            settings["evaluation"]["batch_size"])
+            print(f"{name}: mIoU {100 * scores[name]['miou']:.2f} (nanmean {100 * scores[name]['miou_nanmean']:.2f}), "
+                  f"accuracy {100 * scores[name]['accuracy']:.2f}, {scores[name]['num_scans']} scans", flush=True)
     doc = {
         "checkpoint": args.checkpoint, "model": payload["model"], "label_space": space.name,
         "class_names": list(space.class_names), "voxel_size": payload["voxel_size"], "seed": payload["seed"],

@@ -25,8 +25,8 @@ def run(args) -> int:
 
     set_threads(args.threads)
     section = validate({"labeler": dict(args.settings)}, "downstream.schema.yaml", source="--settings")["labeler"]
-    torch.set_grad_enabled(False)
-    model, payload = load_segmentor(args.labeler, section["backend"], section["device"])
-    side = pseudo_label_shard(model, payload, args.samples, args.out, section["batch_size"])
+    with torch.no_grad():  # a context, not a global switch: callers may run in-process
+        model, payload = load_segmentor(args.labeler, section["backend"], section["device"])
+        side = pseudo_label_shard(model, payload, args.samples, args.out, section["batch_size"])
     print(f"{len(side['scans'])} scans pseudo-labelled in {side['seconds']} s -> {args.out}")
     return 0
