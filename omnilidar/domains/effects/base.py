@@ -23,9 +23,20 @@ An effect module ``omnilidar.domains.effects.<name>`` defines:
 
 from __future__ import annotations
 
+import numpy as np
+
 # Raw SemanticKITTI id given to returns an effect creates (fog/snow/rain scatter
 # returns): 1 = "outlier", which the official learning map sends to ignore (0).
 # Such points are neither counted as right nor wrong in mIoU, as in SemanticKITTI-C.
 WEATHER_RETURN_LABEL = 1
 
 SEVERITY_NAMES = ("light", "moderate", "heavy")
+
+
+def unchanged(scan, return_info: bool):
+    """What ``apply`` returns when the effect does nothing: the input itself (bit for
+    bit), with all-false info masks when ``return_info`` is asked for."""
+    if not return_info:
+        return scan
+    n = len(scan)
+    return scan, {"lost": np.zeros(n, bool), "changed": np.zeros(n, bool), "weather": np.zeros(n, bool)}

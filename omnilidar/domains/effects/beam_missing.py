@@ -26,10 +26,10 @@ from omnilidar.domains.effects.beam_reduction import (
     HIGHEST_FIDELITY,
     fidelity_calibrates,
     drop_rings,
-    no_change_info,
     scan_rings,
 )
 from omnilidar.domains.effects.beam_reduction import accuracy_time_curve as _ring_curve
+from omnilidar.domains.effects.base import unchanged
 from omnilidar.errors import InputError
 
 NEEDS_GROUND = False
@@ -75,7 +75,7 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     calibrate = fidelity_calibrates(fidelity)
     count = int(round(f * sensor.num_beams))
     if count == 0 or len(scan) == 0:
-        return (scan, {**no_change_info(scan), "dropped_beams": []}) if return_info else scan
+        return (scan, {**unchanged(scan, True)[1], "dropped_beams": []}) if return_info else scan
     dropped = np.sort(rng.choice(sensor.num_beams, size=count, replace=False))
     keep = np.ones(sensor.num_beams, bool)
     keep[dropped] = False

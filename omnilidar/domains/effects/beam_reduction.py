@@ -26,6 +26,7 @@ import numpy as np
 from omnilidar.data.rings import recover_rings
 from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import SensorSpec
+from omnilidar.domains.effects.base import unchanged
 from omnilidar.errors import InputError
 
 NEEDS_GROUND = False
@@ -71,11 +72,6 @@ def scan_rings(scan: Scan, sensor: SensorSpec, calibrate: bool = True) -> np.nda
     return recover_rings(scan.points, sensor, calibrate=calibrate)
 
 
-def no_change_info(scan: Scan) -> dict:
-    n = len(scan)
-    return {"lost": np.zeros(n, bool), "changed": np.zeros(n, bool), "weather": np.zeros(n, bool)}
-
-
 def drop_rings(scan: Scan, rings: np.ndarray, keep: np.ndarray, return_info: bool):
     """Keep the points whose ring is selected by ``keep`` (bool per ring id);
     points with an unknown ring (-1) are dropped. Rings follow the kept points."""
@@ -99,7 +95,7 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     k = _keep_every(params)
     calibrate = fidelity_calibrates(fidelity)
     if k == 1 or len(scan) == 0:
-        return (scan, no_change_info(scan)) if return_info else scan
+        return unchanged(scan, return_info)
     rings = scan_rings(scan, sensor, calibrate)
     keep = np.arange(sensor.num_beams) % k == 0
     return drop_rings(scan, rings, keep, return_info)

@@ -82,7 +82,7 @@ import numpy as np
 
 from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import SensorSpec
-from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
+from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
 from omnilidar.errors import InputError
 from omnilidar.io.atomic import atomic_path
 
@@ -326,12 +326,6 @@ def soft_return_table(
 # --------------------------------------------------------------------------- apply
 
 
-def _unchanged(scan: Scan, return_info: bool):
-    if not return_info:
-        return scan
-    n = len(scan)
-    return scan, {"lost": np.zeros(n, bool), "changed": np.zeros(n, bool), "weather": np.zeros(n, bool)}
-
 
 def apply(
     scan: Scan,
@@ -357,7 +351,7 @@ def apply(
     r0_step, quad_nodes = _check_fidelity(fidelity)
     n = len(scan)
     if alpha == 0.0 or n == 0:
-        return _unchanged(scan, return_info)
+        return unchanged(scan, return_info)
     pts = scan.points
     if not np.all(np.isfinite(pts)):
         raise InputError(None, "fog: scan has NaN or infinite coordinates or intensities")

@@ -95,7 +95,7 @@ import numpy as np
 from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains.effects._mie import mie_efficiencies
-from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
+from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
 from omnilidar.errors import InputError
 
 NEEDS_GROUND = False
@@ -244,12 +244,6 @@ def _fidelity(fidelity: dict | None) -> dict:
     fid["mie_max_x"] = float(fid["mie_max_x"])
     return fid
 
-
-def _no_change(scan: Scan, return_info: bool):
-    if not return_info:
-        return scan
-    n = len(scan)
-    return scan, {"lost": np.zeros(n, bool), "changed": np.zeros(n, bool), "weather": np.zeros(n, bool)}
 
 
 # ------------------------------------------------------------- drop sampling
@@ -425,7 +419,7 @@ def apply(
     fid = _fidelity(fidelity)
     n = len(scan)
     if rate == 0.0 or n == 0:
-        return _no_change(scan, return_info)
+        return unchanged(scan, return_info)
     pts = scan.points
     if not np.all(np.isfinite(pts)):
         raise InputError(None, "rain: scan has NaN or infinite point values")

@@ -86,7 +86,7 @@ from scipy.special import gammainc, gamma as gamma_fn
 
 from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import SensorSpec
-from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
+from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
 from omnilidar.errors import InputError
 
 NEEDS_GROUND = False
@@ -393,12 +393,6 @@ def _check_fidelity(fidelity: dict | None) -> dict:
             "max_flakes": int(fid["max_flakes"])}
 
 
-def _unchanged(scan: Scan, return_info: bool):
-    if not return_info:
-        return scan
-    n = len(scan)
-    return scan, {"lost": np.zeros(n, bool), "changed": np.zeros(n, bool), "weather": np.zeros(n, bool)}
-
 
 def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator, *,
           ground: np.ndarray | None = None, fidelity: dict | None = None, return_info: bool = False):
@@ -413,7 +407,7 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     p = _check_params(params)
     fid = _check_fidelity(fidelity)
     if p["snowfall_rate"] == 0.0 or len(scan) == 0:
-        return _unchanged(scan, return_info)
+        return unchanged(scan, return_info)
     theta = sensor.beam_divergence_mrad * 1e-3
     scale = float(sensor.intensity_scale)
     if not (theta > 0 and np.isfinite(theta) and scale > 0 and np.isfinite(scale)):
@@ -426,7 +420,7 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     d_all = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
     beam, r, f = sample_flakes(d_all, p, theta, rng, fid["min_fraction"], fid["max_flakes"], BEAM_EXIT_DIAMETER)
     if len(beam) == 0:
-        return _unchanged(scan, return_info)
+        return unchanged(scan, return_info)
 
     # touched beams only, renumbered 0..T-1
     touched, fb = np.unique(beam, return_inverse=True)

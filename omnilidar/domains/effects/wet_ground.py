@@ -71,6 +71,7 @@ import numpy as np
 
 from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import SensorSpec
+from omnilidar.domains.effects.base import unchanged
 from omnilidar.errors import InputError
 
 NEEDS_GROUND = True
@@ -205,12 +206,6 @@ def _normal(xyz: np.ndarray, sensor: SensorSpec) -> np.ndarray:
     return fit_plane_normal(xyz, up_vector(sensor))
 
 
-def _no_change(scan: Scan, return_info: bool):
-    if not return_info:
-        return scan
-    n = len(scan)
-    return scan, {"lost": np.zeros(n, bool), "changed": np.zeros(n, bool), "weather": np.zeros(n, bool)}
-
 
 def apply(
     scan: Scan,
@@ -242,7 +237,7 @@ def apply(
         raise InputError(None, f"wet_ground: ground mask must be bool of shape ({n},), got {ground.dtype} {ground.shape}")
     f = min(h_mm / depth_mm, 1.0)
     if f <= 0.0 or n == 0:
-        return _no_change(scan, return_info)
+        return unchanged(scan, return_info)
 
     # Work on the ground points only (the rest is never read twice).
     idx = np.flatnonzero(ground)
@@ -253,7 +248,7 @@ def apply(
     if not usable.all():
         idx, gp, xyz, r = idx[usable], gp[usable], xyz[usable], r[usable]
     if len(idx) == 0:
-        return _no_change(scan, return_info)
+        return unchanged(scan, return_info)
 
     scale = float(scan.intensity_scale) if scan.intensity_scale > 0 else 1.0
     d = r
@@ -290,7 +285,7 @@ def apply(
     changed = np.zeros(n, bool)
     changed[idx] = (out_i != gp[:, 3]) & ~lost_g
     if not lost.any() and not changed.any():
-        return _no_change(scan, return_info)
+        return unchanged(scan, return_info)
     # One copy of the points: select the kept ones, then write the new
     # intensities at the kept ground points' output positions.
     out = scan.select(~lost) if lost.any() else scan.with_points(scan.points.copy())
