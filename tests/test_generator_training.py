@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from omnilidar.generator.text import build_prompt_cache
-from omnilidar.generator.training import _from_plain, _to_plain, load_generator, train_generator
+from omnilidar.checkpoints import from_plain, to_plain
+from omnilidar.generator.training import load_generator, train_generator
 from test_generator_fixtures import make_domains, one_torch_thread, tiny_settings  # noqa: F401
 
 
@@ -46,7 +47,7 @@ def test_three_iterations_write_weights_only_checkpoints(trained):
     assert [c.name for c in ckpts] == ["iter_2.pth", "iter_3.pth"]
     for c in ckpts:  # torch >= 2.6 default: weights_only=True must work on our own checkpoints
         ck = torch.load(c, map_location="cpu", weights_only=True)
-        assert ck["meta"]["omnilidar_config"] == settings
+        assert ck["meta"]["omnilidar"]["config"] == settings
         assert "ema_state_dict" in ck and "optimizer" in ck
         hub = ck["message_hub"]["log_scalars"]
         assert hub and all(isinstance(v, dict) for v in hub.values())
@@ -90,10 +91,10 @@ def test_message_hub_round_trip_is_weights_only_safe(tmp_path):
 
     buf = HistoryBuffer([1.0, 2.0], [1, 1], max_length=7)
     hub = {"log_scalars": {"loss": buf}, "runtime_info": {"a": np.float64(2.5), "arr": np.arange(3)}, "x": [np.int64(4)]}
-    plain = _to_plain(hub)
+    plain = to_plain(hub)
     path = tmp_path / "hub.pt"
     torch.save(plain, path)
-    back = _from_plain(torch.load(path, weights_only=True))
+    back = from_plain(torch.load(path, weights_only=True))
     assert isinstance(back["log_scalars"]["loss"], HistoryBuffer)
     assert back["log_scalars"]["loss"].mean() == pytest.approx(1.5)
     assert back["log_scalars"]["loss"].max_length == 7

@@ -9,10 +9,10 @@ lines with loss, learning rate, time per step and ETA.
 Checkpoints stay loadable with ``torch.load(weights_only=True)`` (torch >= 2.6's
 default), so resuming needs no exception to the safe loader: mmengine pickles its
 message hub (``HistoryBuffer`` objects, whose pickles reference bound methods,
-and numpy arrays and scalars), which :class:`WeightsOnlyCheckpointHook` converts to
+and numpy arrays and scalars), which :func:`omnilidar.checkpoints.weights_only_hook` converts to
 plain tensors, dicts and Python numbers in ``before_save_checkpoint`` and back in
 ``after_load_checkpoint``. Each checkpoint also carries the resolved generator
-config (``meta["omnilidar_config"]``).
+config (``meta["omnilidar"]["config"]``).
 
 Resuming: the work directory is keyed by a hash of the resolved config and seed,
 so an interrupted run resumes from its last checkpoint and a changed config starts
@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from omnilidar.checkpoints import weights_only_hook
 from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight
@@ -40,7 +41,6 @@ from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
 
 CHECKPOINT_FORMAT = "omnilidar-generator/1"
-_TAG = "__omnilidar_type__"
 
 
 # Keys that do not change what one training step computes: a run whose config differs
@@ -108,75 +108,10 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
 # --------------------------------------------------------------------------- hooks
 
 
-def _to_plain(obj):
-    """Replace HistoryBuffers and numpy values by tagged dicts of tensors / Python numbers."""
-    from mmengine.logging import HistoryBuffer
-
-    if isinstance(obj, HistoryBuffer):
-        log, count = obj.data
-        return {
-            _TAG: "HistoryBuffer",
-            "log_history": torch.from_numpy(np.asarray(log, dtype=np.float64).copy()),
-            "count_history": torch.from_numpy(np.asarray(count, dtype=np.float64).copy()),
-            "max_length": int(obj.max_length),
-        }
-    if isinstance(obj, np.ndarray):
-        if obj.dtype == object:
-            raise TypeError("object arrays cannot be stored in a weights-only checkpoint")
-        return {_TAG: "ndarray", "data": torch.from_numpy(np.ascontiguousarray(obj).copy())}
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, dict):
-        return {k: _to_plain(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_to_plain(v) for v in obj]
-    if isinstance(obj, tuple):
-        return tuple(_to_plain(v) for v in obj)
-    return obj
-
-
-def _from_plain(obj):
-    """Inverse of :func:`_to_plain`."""
-    from mmengine.logging import HistoryBuffer
-
-    if isinstance(obj, dict):
-        tag = obj.get(_TAG)
-        if tag == "HistoryBuffer":
-            return HistoryBuffer(
-                obj["log_history"].numpy().tolist(), obj["count_history"].numpy().tolist(), obj["max_length"]
-            )
-        if tag == "ndarray":
-            return obj["data"].numpy()
-        return {k: _from_plain(v) for k, v in obj.items()}
-    if isinstance(obj, list):
-        return [_from_plain(v) for v in obj]
-    if isinstance(obj, tuple):
-        return tuple(_from_plain(v) for v in obj)
-    return obj
-
-
 def make_hooks(settings: dict, domain_names: list[str], seed: int) -> list:
     """Our custom hooks: weights-only-safe checkpoints (+ resolved config) and the step counter."""
     from mmengine.hooks import Hook
     from mmengine.model import is_model_wrapper
-
-    class WeightsOnlyCheckpointHook(Hook):
-        """Make checkpoints loadable with ``torch.load(weights_only=True)`` and carry the config."""
-
-        priority = "VERY_LOW"  # save: after EMAHook has added its state
-
-        def before_save_checkpoint(self, runner, checkpoint: dict) -> None:
-            for key in ("message_hub", "meta"):
-                if key in checkpoint:
-                    checkpoint[key] = _to_plain(checkpoint[key])
-            checkpoint["meta"]["omnilidar_config"] = settings
-            checkpoint["meta"]["omnilidar_domains"] = list(domain_names)
-            checkpoint["meta"]["omnilidar_seed"] = int(seed)
-
-        def after_load_checkpoint(self, runner, checkpoint: dict) -> None:
-            for key in ("message_hub", "meta"):
-                if key in checkpoint:
-                    checkpoint[key] = _from_plain(checkpoint[key])
 
     class IterationHook(Hook):
         """Tell the model the global step (its noise generator is keyed by it)."""
@@ -187,7 +122,8 @@ def make_hooks(settings: dict, domain_names: list[str], seed: int) -> list:
             model = runner.model.module if is_model_wrapper(runner.model) else runner.model
             model.iteration = runner.iter
 
-    return [WeightsOnlyCheckpointHook(), IterationHook()]
+    meta = {"config": settings, "domains": list(domain_names), "seed": int(seed)}
+    return [weights_only_hook(meta), IterationHook()]
 
 
 # --------------------------------------------------------------------------- entry point

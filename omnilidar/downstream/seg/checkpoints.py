@@ -14,7 +14,7 @@ plain state dict (optionally under a ``state_dict`` key); both are loaded with
 
 mmengine pickles its message hub into resumable checkpoints (``HistoryBuffer``
 objects and numpy values), which the safe loader refuses; the hook from
-:func:`weights_only_hook` turns them into tagged plain values on save and back
+:func:`omnilidar.checkpoints.weights_only_hook` turns them into tagged plain values on save and back
 on load, so resuming needs no exception either.
 """
 
@@ -22,72 +22,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from omnilidar.errors import InputError
 from omnilidar.io.atomic import atomic_path
 
 FORMAT = "omnilidar-segmentor/1"
-_TAG = "__omnilidar_type__"
-
-
-def to_plain(obj):
-    """HistoryBuffers and numpy values -> tagged dicts of tensors / Python numbers."""
-    from mmengine.logging import HistoryBuffer
-
-    if isinstance(obj, HistoryBuffer):
-        log, count = obj.data
-        return {_TAG: "HistoryBuffer", "log": torch.as_tensor(np.asarray(log, np.float64)),
-                "count": torch.as_tensor(np.asarray(count, np.float64)), "max_length": int(obj.max_length)}
-    if isinstance(obj, np.ndarray):
-        if obj.dtype == object:
-            raise TypeError("object arrays cannot go into a weights-only checkpoint")
-        return {_TAG: "ndarray", "data": torch.from_numpy(np.ascontiguousarray(obj).copy())}
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, dict):
-        return {k: to_plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(to_plain(v) for v in obj)
-    return obj
-
-
-def from_plain(obj):
-    """Inverse of :func:`to_plain`."""
-    from mmengine.logging import HistoryBuffer
-
-    if isinstance(obj, dict):
-        tag = obj.get(_TAG)
-        if tag == "HistoryBuffer":
-            return HistoryBuffer(obj["log"].tolist(), obj["count"].tolist(), obj["max_length"])
-        if tag == "ndarray":
-            return obj["data"].numpy()
-        return {k: from_plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(from_plain(v) for v in obj)
-    return obj
-
-
-def weights_only_hook(meta: dict):
-    """An mmengine hook making resumable checkpoints safe-loadable; ``meta`` is stored in them."""
-    from mmengine.hooks import Hook
-
-    class WeightsOnlyCheckpointHook(Hook):
-        priority = "VERY_LOW"
-
-        def before_save_checkpoint(self, runner, checkpoint: dict) -> None:
-            for key in ("message_hub", "meta"):
-                if key in checkpoint:
-                    checkpoint[key] = to_plain(checkpoint[key])
-            checkpoint.setdefault("meta", {})["omnilidar"] = to_plain(meta)
-
-        def after_load_checkpoint(self, runner, checkpoint: dict) -> None:
-            for key in ("message_hub", "meta"):
-                if key in checkpoint:
-                    checkpoint[key] = from_plain(checkpoint[key])
-
-    return WeightsOnlyCheckpointHook()
 
 
 def save_payload(payload: dict, out: str | Path) -> None:

@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.downstream.seg.checkpoints import save_payload, weights_only_hook
+from omnilidar.checkpoints import weights_only_hook
+from omnilidar.downstream.seg.checkpoints import save_payload
 from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, epoch_length
 from omnilidar.downstream.seg.label_spaces import LabelSpace
 from omnilidar.downstream.seg.models import build_segmentor, model_spec
