@@ -6,8 +6,8 @@ safe loader refuses; allow-listing those classes would not be enough, and
 allow-listing ``getattr`` would defeat the protection. The hook from
 :func:`weights_only_hook` turns them into tagged plain values (tensors, Python
 numbers) on save and back on load, so our own checkpoints stay weights-only
-loadable and resuming needs no exception. Used by every trainer (generator,
-segmentors, metric extractors).
+loadable and resuming needs no exception. Used by the generator and segmentor
+trainers.
 """
 
 from __future__ import annotations
