@@ -80,6 +80,15 @@ def test_slurm_profile_asks_gpus_for_gpu_rules_only(workdir):
     assert "slurm_account=" in resources["train_generator"]
 
 
+def test_paper_config_plans_paper_scale_shards(workdir):
+    config = load_config(workdir / "config" / "paper.yaml")
+    jobs = planned_jobs(workdir, "results/semkitti_1pct.json", "--configfile", "config/paper.yaml")
+    sampling = config["generator"]["sampling"]
+    assert sampling["scans_per_domain"] == 10000 and config["generator"]["training"]["iterations"] == 500000
+    assert jobs["sample_domain"] == sampling["scans_per_domain"] // sampling["scans_per_shard"]  # Vehicle only
+    assert "synthesize_semantickitti" not in jobs and jobs["index_dataset"] >= 1  # real roots are indexed
+
+
 def test_generator_dag_shards_sampling(workdir):
     config = load_config(workdir / "config" / "config.yaml")
     jobs = planned_jobs(workdir, "samples")
