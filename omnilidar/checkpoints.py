@@ -12,6 +12,8 @@ trainers.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -74,3 +76,17 @@ def weights_only_hook(meta: dict):
                     checkpoint[key] = from_plain(checkpoint[key])
 
     return WeightsOnlyCheckpointHook()
+
+
+def last_checkpoint(work_dir: Path) -> Path | None:
+    """The checkpoint mmengine marked as last in ``work_dir`` (None if none exists)."""
+    marker = Path(work_dir) / "last_checkpoint"
+    if not marker.exists():
+        return None
+    path = Path(marker.read_text().strip())
+    return path if path.exists() else None
+
+
+def checkpoint_iteration(path: Path) -> int:
+    """The iteration a resumable checkpoint was saved at."""
+    return int(torch.load(path, map_location="cpu", weights_only=True, mmap=True)["meta"]["iter"])

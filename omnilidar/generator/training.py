@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.checkpoints import weights_only_hook
+from omnilidar.checkpoints import checkpoint_iteration, last_checkpoint, weights_only_hook
 from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight
@@ -129,17 +129,6 @@ def make_hooks(settings: dict, domain_names: list[str], seed: int) -> list:
 # --------------------------------------------------------------------------- entry point
 
 
-def _last_checkpoint(work_dir: Path) -> Path | None:
-    marker = work_dir / "last_checkpoint"
-    if not marker.exists():
-        return None
-    path = Path(marker.read_text().strip())
-    return path if path.exists() else None
-
-
-def _resume_iteration(path: Path) -> int:
-    ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    return int(ckpt["meta"]["iter"])
 
 
 def _dist_info() -> tuple[str, int, int]:
@@ -177,8 +166,8 @@ def train_generator(
 
     run_dir = Path(work_dir) / config_hash(settings, seed)
     run_dir.mkdir(parents=True, exist_ok=True)
-    resume_from = _last_checkpoint(run_dir)
-    skip = _resume_iteration(resume_from) if resume_from else 0
+    resume_from = last_checkpoint(run_dir)
+    skip = checkpoint_iteration(resume_from) if resume_from else 0
 
     launcher, rank, world = _dist_info()
     sampler = make_batch_sampler(

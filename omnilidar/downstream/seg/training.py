@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.checkpoints import weights_only_hook
+from omnilidar.checkpoints import checkpoint_iteration, last_checkpoint, weights_only_hook
 from omnilidar.downstream.seg.checkpoints import save_payload
 from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, epoch_length
 from omnilidar.downstream.seg.label_spaces import LabelSpace
@@ -100,16 +100,6 @@ def make_model(net: torch.nn.Module, loss_on: str):
     return SegmentorModel()
 
 
-def _last_checkpoint(work_dir: Path) -> Path | None:
-    marker = work_dir / "last_checkpoint"
-    if not marker.exists():
-        return None
-    path = Path(marker.read_text().strip())
-    return path if path.exists() else None
-
-
-def _resume_iteration(path: Path) -> int:
-    return int(torch.load(path, map_location="cpu", weights_only=True, mmap=True)["meta"]["iter"])
 
 
 def train_segmentor(
@@ -143,8 +133,8 @@ def train_segmentor(
 
     run_dir = Path(work_dir) / run_hash(settings, backbone, real, generated, seed)
     run_dir.mkdir(parents=True, exist_ok=True)
-    resume_from = _last_checkpoint(run_dir)
-    skip = _resume_iteration(resume_from) if resume_from else 0
+    resume_from = last_checkpoint(run_dir)
+    skip = checkpoint_iteration(resume_from) if resume_from else 0
 
     dataset = SegScanDataset(real + generated, space, settings["augmentation"], seed, settings.get("max_points"))
     sampler = MixedBatchSampler(len(real), len(generated), mixing, sched["batch_size"], seed, skip=skip)
