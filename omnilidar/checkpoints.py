@@ -90,3 +90,16 @@ def last_checkpoint(work_dir: Path) -> Path | None:
 def checkpoint_iteration(path: Path) -> int:
     """The iteration a resumable checkpoint was saved at."""
     return int(torch.load(path, map_location="cpu", weights_only=True, mmap=True)["meta"]["iter"])
+
+
+def iteration_hooks(log_interval: int, checkpoint_interval: int, keep_checkpoints: int) -> dict:
+    """mmengine ``default_hooks`` of our iteration-based trainers: timing, logging with
+    ETA, LR schedule, and resumable checkpoints every ``checkpoint_interval`` steps."""
+    return dict(
+        timer=dict(type="IterTimerHook"),
+        logger=dict(type="LoggerHook", interval=log_interval, log_metric_by_epoch=False),
+        param_scheduler=dict(type="ParamSchedulerHook"),
+        checkpoint=dict(type="CheckpointHook", interval=checkpoint_interval, by_epoch=False,
+                        max_keep_ckpts=keep_checkpoints, save_last=True),
+        sampler_seed=None,
+    )

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.checkpoints import checkpoint_iteration, last_checkpoint, weights_only_hook
+from omnilidar.checkpoints import checkpoint_iteration, iteration_hooks, last_checkpoint, weights_only_hook
 from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight
@@ -206,19 +206,7 @@ def train_generator(
         train_cfg=dict(by_epoch=False, max_iters=tr["iterations"], val_interval=tr["iterations"] + 1),
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
-        default_hooks=dict(
-            timer=dict(type="IterTimerHook"),
-            logger=dict(type="LoggerHook", interval=tr["log_interval"], log_metric_by_epoch=False),
-            param_scheduler=dict(type="ParamSchedulerHook"),
-            checkpoint=dict(
-                type="CheckpointHook",
-                interval=tr["checkpoint_interval"],
-                by_epoch=False,
-                max_keep_ckpts=tr["keep_checkpoints"],
-                save_last=True,
-            ),
-            sampler_seed=None,
-        ),
+        default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
         custom_hooks=[EMAHook(momentum=1.0 - tr["ema_decay"]), *make_hooks(settings, names, seed)],
         launcher=launcher,
         env_cfg=dict(cudnn_benchmark=False, dist_cfg=dict(backend="nccl" if cuda else "gloo")),

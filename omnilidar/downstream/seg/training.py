@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.checkpoints import checkpoint_iteration, last_checkpoint, weights_only_hook
+from omnilidar.checkpoints import checkpoint_iteration, iteration_hooks, last_checkpoint, weights_only_hook
 from omnilidar.downstream.seg.checkpoints import save_payload
 from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, epoch_length
 from omnilidar.downstream.seg.label_spaces import LabelSpace
@@ -168,14 +168,7 @@ def train_segmentor(
         train_cfg=dict(by_epoch=False, max_iters=iterations, val_interval=iterations + 1),
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
-        default_hooks=dict(
-            timer=dict(type="IterTimerHook"),
-            logger=dict(type="LoggerHook", interval=sched["log_interval"], log_metric_by_epoch=False),
-            param_scheduler=dict(type="ParamSchedulerHook"),
-            checkpoint=dict(type="CheckpointHook", interval=sched["checkpoint_interval"], by_epoch=False,
-                            max_keep_ckpts=1, save_last=True),
-            sampler_seed=None,
-        ),
+        default_hooks=iteration_hooks(sched["log_interval"], sched["checkpoint_interval"], keep_checkpoints=1),
         custom_hooks=[weights_only_hook(meta)],
         launcher="none",
         env_cfg=dict(cudnn_benchmark=False),
