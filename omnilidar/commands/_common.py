@@ -18,3 +18,11 @@ def settings_arg(parser: argparse.ArgumentParser) -> None:
 
 def seed_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="root random seed")
+
+
+def report_outputs_arg(parser: argparse.ArgumentParser, markdown: bool = True) -> None:
+    """``--out`` (results JSON), ``--markdown`` (table) and ``--figure`` (PNG) of a results target."""
+    parser.add_argument("--out", required=True, help="results JSON")
+    if markdown:
+        parser.add_argument("--markdown", required=True, help="markdown table")
+    parser.add_argument("--figure", required=True, help="figure (PNG)")

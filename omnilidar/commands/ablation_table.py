@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "score the ablation presets (single-domain ... full) averaged over domains"
 
@@ -23,9 +23,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--prompts", required=True)
     parser.add_argument("--checkpoint", action="append", default=[], metavar="PRESET=CKPT", required=True)
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--markdown", required=True)
-    parser.add_argument("--figure", required=True)
+    report_outputs_arg(parser)
 
 
 def run(args) -> int:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "score generated scans of every domain (full model vs single-domain baselines) with JSD/MMD/FRD/FRID/FSVD/FPVD"
 
@@ -20,9 +20,7 @@ def add_arguments(parser) -> None:
                         help="single-domain baseline checkpoint of one domain (repeat per domain)")
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH",
                         help="extractor weights (official file or self-trained checkpoint), e.g. frd=data/extractors/frd.pt")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--markdown", required=True)
-    parser.add_argument("--figure", required=True)
+    report_outputs_arg(parser)
 
 
 def run(args) -> int:

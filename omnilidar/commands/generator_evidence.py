@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "BEV JSD/MMD of trained vs untrained generator samples and per-domain statistics vs real scans"
 
@@ -15,9 +15,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--domains", required=True)
     parser.add_argument("--prompts", required=True)
     parser.add_argument("--checkpoint", required=True, help="trained full generator")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--markdown", required=True)
-    parser.add_argument("--figure", required=True)
+    report_outputs_arg(parser)
 
 
 def untrained_like(payload: dict, seed: int):

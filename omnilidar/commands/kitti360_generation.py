@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "score Vehicle-domain samples against KITTI-360 scans (full model vs single-domain baseline)"
 
@@ -15,9 +15,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--full", required=True, help="full OmniLiDAR checkpoint")
     parser.add_argument("--baseline", default=None, help="single-domain (R2DM-equivalent) checkpoint of the domain")
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--markdown", required=True)
-    parser.add_argument("--figure", required=True)
+    report_outputs_arg(parser)
 
 
 def run(args) -> int:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "measure per-domain JSD/MMD/feature metric and seconds per scan for every sampler and step count"
 
@@ -19,8 +19,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
     parser.add_argument("--effects", default=None, help="results/effects_tradeoff.json (optional)")
     parser.add_argument("--downstream", nargs="*", default=[], help="results/semkitti_*pct.json present so far")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--figure", required=True)
+    report_outputs_arg(parser, markdown=False)
 
 
 def effect_curves(path) -> list[dict]:
