@@ -22,7 +22,10 @@ official layouts:
   ``segmentation_decoder``, ``segmentation_head`` (and optionally
   ``arch_cfg.yaml`` with the sensor mean/std), whose keys are prefixed with
   ``backbone.``, ``decoder.`` and ``head.``; or one state dict with those prefixes;
-* PointNet, MinkUNet, SPVCNN: one state dict (optionally under ``state_dict``).
+* PointNet, MinkUNet, SPVCNN: one state dict (optionally under ``state_dict``);
+* MinkUNet, SPVCNN also: LiDM's / SPVNAS's torchsparse MinkowskiNet / SPVCNN
+  checkpoints as published (``model.ckpt``), converted on load by
+  :mod:`.lidm_weights` (the tag hashes the file as given).
 """
 
 from __future__ import annotations
@@ -158,11 +161,17 @@ def load_extractor(kind: str, path: str | Path) -> LoadedExtractor:
     path = Path(path)
     if not path.exists():
         raise InputError(path, f"{METRIC_NAMES[kind]} extractor weights not found")
+    payload = None
     if path.is_file() and not path.name.endswith((".tar.gz", ".tgz", ".tar")):
-        try:
-            payload = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as err:
-            raise InputError(path, f"not a weights-only loadable file: {err}") from None
+        if kind in ("fsvd", "fpvd"):  # LiDM's Lightning checkpoints need stand-ins for unknown classes
+            from omnilidar.metrics.extractors.lidm_weights import load_checkpoint
+
+            payload = load_checkpoint(path)
+        else:
+            try:
+                payload = torch.load(path, map_location="cpu", weights_only=True)
+            except Exception as err:
+                raise InputError(path, f"not a weights-only loadable file: {err}") from None
         if isinstance(payload, dict) and payload.get("format") == FORMAT:
             return _load_self_trained(kind, path, payload)
     tag = f"official:{file_sha(path)}"
@@ -170,6 +179,15 @@ def load_extractor(kind: str, path: str | Path) -> LoadedExtractor:
     if kind in ("frd", "frid"):
         state, mean, std = _read_rangenet_official(path)
         arch = _rangenet_arch(state, path)
+    elif kind in ("fsvd", "fpvd") and payload is not None:
+        # LiDM's torchsparse MinkowskiNet / SPVCNN files convert on the fly; our layout loads as is.
+        from omnilidar.metrics.extractors import lidm_weights
+
+        state = lidm_weights.unwrap_state(payload, path)
+        if lidm_weights.looks_like_torchsparse(state):
+            state, arch = lidm_weights.convert_lidm_state(state, kind, path)
+        else:
+            arch = _infer_arch(kind, state, path)
     else:
         state = _load_plain(path, path)
         arch = _infer_arch(kind, state, path)
