@@ -171,3 +171,38 @@ def test_config_errors_and_paper_scale_parameter_count():
     with torch.device("meta"):
         n = count_parameters(EfficientUNet(cfg, torch.zeros(32, 64, 1024)))
     assert 50e6 < n < 120e6  # paper: 97.73 M; ours is reported in the README/benchmark
+
+
+def test_v_skip_output_keeps_x0_bounded_near_t1_where_direct_does_not():
+    """eps = sigma x_t + alpha F: the implied x0 = alpha x_t - sigma F stays within |x_t| + |F|
+    at logSNR -15 for any weights; the direct head turns the same output error into x0 ~ 1e3."""
+    import copy
+
+    from omnilidar.generator.schedule import alpha_sigma
+
+    outs = {}
+    for mode in ("direct", "v_skip"):
+        s = copy.deepcopy(tiny_settings())
+        s["diffusion"]["epsilon_output"] = mode
+        torch.manual_seed(0)
+        model = build_denoiser(s, 8, 3).eval()
+        with torch.no_grad():
+            torch.nn.init.normal_(model.head.weight, std=0.05)  # an untrained-but-nonzero head
+            x = torch.randn(2, 2, 16, 64)
+            logsnr = torch.full((2,), -15.0)
+            eps = model(x, logsnr, torch.tensor([0, 1]), torch.randn(2, 5, 8), torch.ones(2, 5, dtype=torch.bool))
+            alpha, sigma = alpha_sigma(logsnr[:, None, None, None])
+            outs[mode] = ((x - sigma * eps) / alpha, eps)
+    x0_direct, _ = outs["direct"]
+    x0_skip, eps_skip = outs["v_skip"]
+    assert torch.isfinite(x0_skip).all() and torch.isfinite(x0_direct).all()
+    assert x0_skip.abs().max() < 10.0
+    assert x0_direct.abs().max() > 100.0
+    # the skip connection makes eps ~ x_t at t = 1 (alpha ~ 5.5e-4)
+    torch.testing.assert_close(eps_skip, x, atol=0.05, rtol=0)
+    bad = copy.deepcopy(tiny_settings())
+    bad["diffusion"]["epsilon_output"] = "x0"
+    from omnilidar.errors import InputError
+
+    with pytest.raises(InputError, match="epsilon_output"):
+        build_denoiser(bad, 8, 3)

@@ -28,6 +28,7 @@ import torch.nn.functional as F
 
 from omnilidar.generator.cdfm import CDFM
 from omnilidar.generator.dafs import DAFS
+from omnilidar.generator.schedule import alpha_sigma
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,7 @@ class UNetConfig:
     dafs_embed_dim: int = 64
     num_domains: int = 8
     logsnr_range: tuple[float, float] = field(default=(-15.0, 15.0))
+    epsilon_output: str = "direct"
 
     @property
     def num_levels(self) -> int:
@@ -71,6 +73,8 @@ class UNetConfig:
         widths = [self.base_channels * m for m in self.channel_multipliers]
         if any(w % self.groupnorm_groups for w in widths):
             raise ValueError(f"channel widths {widths} are not divisible by {self.groupnorm_groups} GroupNorm groups")
+        if self.epsilon_output not in ("direct", "v_skip"):
+            raise ValueError(f"epsilon_output must be 'direct' or 'v_skip', got {self.epsilon_output!r}")
         if self.cdfm and any(widths[lv] % self.cdfm_groups for lv in self.cdfm_levels):
             raise ValueError(f"CDFM groups {self.cdfm_groups} do not divide the widths {widths}")
 
@@ -276,7 +280,14 @@ class EfficientUNet(nn.Module):
         h = self.mid2(h, emb)
         for level, up in zip(self.dec, self.up):
             h = up(level(torch.cat([h, skips.pop()], dim=1), emb, tokens, mask, domain))
-        return self.head(F.silu(self.head_norm(h)))
+        out = self.head(F.silu(self.head_norm(h)))
+        if self.cfg.epsilon_output == "direct":
+            return out
+        # v_skip: eps = sigma x_t + alpha F. The output is still epsilon (same loss and
+        # samplers), but near t = 1 (alpha -> 0) it no longer needs the network to be
+        # exact to 1e-4 for x0 = (x_t - sigma eps) / alpha to be usable; F learns v.
+        alpha, sigma = alpha_sigma(logsnr.float().expand(b)[:, None, None, None])
+        return (sigma * x.float() + alpha * out.float()).to(out.dtype)
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -317,6 +328,7 @@ def unet_config(settings: dict, text_dim: int, num_domains: int) -> UNetConfig:
         dafs_embed_dim=m["dafs_embed_dim"],
         num_domains=int(num_domains),
         logsnr_range=(float(d["logsnr_min"]), float(d["logsnr_max"])),
+        epsilon_output=d["epsilon_output"],
     )
 
 
