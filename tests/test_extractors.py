@@ -265,3 +265,15 @@ def test_self_training_runs_and_tags(tmp_path, labelled_entries, kind, arch):
         a = torch.load(out, weights_only=True)["state_dict"]
         b = torch.load(out2, weights_only=True)["state_dict"]
         assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_across_domain_correlation_follows_domains_and_flags_flat_statistics():
+    from omnilidar.metrics.generation import across_domain_correlation
+
+    real = {"A": {"n": 1.0, "flat": 0.0}, "B": {"n": 2.0, "flat": 0.0}, "C": {"n": 4.0, "flat": 0.0}}
+    same_order = {"A": {"n": 10.0, "flat": 1.0}, "B": {"n": 20.0, "flat": 2.0}, "C": {"n": 40.0, "flat": 3.0}}
+    reversed_order = {"A": {"n": 4.0, "flat": 1.0}, "B": {"n": 2.0, "flat": 1.0}, "C": {"n": 1.0, "flat": 1.0}}
+    r = across_domain_correlation(real, same_order, ["n", "flat"])
+    assert r["n"] == pytest.approx(1.0) and r["flat"] is None  # real side does not vary
+    assert across_domain_correlation(real, reversed_order, ["n"])["n"] < -0.9
+    assert across_domain_correlation({"A": real["A"], "B": real["B"]}, same_order, ["n"])["n"] is None

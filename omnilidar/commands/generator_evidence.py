@@ -39,7 +39,7 @@ def run(args) -> int:
     from omnilidar.generator.text import load_prompt_cache
     from omnilidar.generator.training import load_generator
     from omnilidar.generator.unet import range_image_spec
-    from omnilidar.metrics.generation import compare, domain_statistics, real_domain_images, sample_images, set_features
+    from omnilidar.metrics.generation import across_domain_correlation, compare, domain_statistics, real_domain_images, sample_images, set_features
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import evidence_figure, write_outputs
 
@@ -70,8 +70,11 @@ def run(args) -> int:
         a, b = out[d]["trained"][key], out[d]["untrained"][key]
         return a is not None and (b is None or a < b)
 
+    control = across_domain_correlation({d: e["statistics"]["real"] for d, e in out.items()},
+                                        {d: e["statistics"]["generated"] for d, e in out.items()}, STATS)
     summary = {"trained_closer_JSD": sum(better(d, "JSD") for d in out),
-               "trained_closer_MMD": sum(better(d, "MMD_1e4") for d in out), "domains": len(out)}
+               "trained_closer_MMD": sum(better(d, "MMD_1e4") for d in out), "domains": len(out),
+               "domain_control_pearson_r": control}
     f = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
     lines = ["| domain | JSD trained | JSD untrained | MMD trained | MMD untrained | "
              + " | ".join(f"{s} real / gen" for s in STATS) + " |", "|" + "---|" * (5 + len(STATS))]
@@ -83,7 +86,8 @@ def run(args) -> int:
     md = "\n".join([
         f"Generator evidence ({n} scans per set, sampler {settings['sampler']} x {settings['steps']}; MMD x1e-4). "
         f"Trained closer to real than untrained: JSD in {summary['trained_closer_JSD']}/{len(out)} domains, "
-        f"MMD in {summary['trained_closer_MMD']}/{len(out)}.", "", *lines])
+        f"MMD in {summary['trained_closer_MMD']}/{len(out)}. Domain control (Pearson r across domains, real vs "
+        "generated statistic): " + ", ".join(f"{k} {f(v)}" for k, v in control.items()) + ".", "", *lines])
     result = envelope("generator_evidence", "generator-evidence", settings, {"seed": args.seed},
                       {"total": time.perf_counter() - t0}, "domains index", summary=summary, domains=out)
     write_outputs(result, args.out, args.markdown, md)

@@ -200,3 +200,19 @@ def domain_statistics(images, spec: RangeImageSpec, near_range: float = 5.0) -> 
         "elevation_profile": valid.mean(axis=(0, 2)).round(4).tolist(),
         "range_profile": (hist / max(hist.sum(), 1)).round(4).tolist(),
     }
+
+
+def across_domain_correlation(real: dict[str, dict], generated: dict[str, dict], keys) -> dict[str, float | None]:
+    """Domain control in one number per statistic: the Pearson correlation, across domains,
+    between the real and the generated value of each statistic (``real[domain][key]``).
+    None where either side does not vary across the domains (no signal to follow)."""
+    doms = [d for d in real if d in generated]
+    out = {}
+    for k in keys:
+        a = np.array([real[d][k] for d in doms], np.float64)
+        b = np.array([generated[d][k] for d in doms], np.float64)
+        if len(doms) < 3 or a.std() < 1e-9 * max(1.0, np.abs(a).max()) or b.std() < 1e-9 * max(1.0, np.abs(b).max()):
+            out[k] = None
+        else:
+            out[k] = float(np.corrcoef(a, b)[0, 1])
+    return out
