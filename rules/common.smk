@@ -207,3 +207,43 @@ GDA_RESULT = (
     "--pseudo-labels {input.pseudo} --out {output.json} --figure {output.figure} > {log} 2>&1"
 )
 GDA_RESULT_STANDIN = GDA_RESULT.replace("> {log}", "{params.standin} > {log}")
+
+
+# GDA curve helpers (downstream.experiments.gda_curve; rules/downstream.smk defines EXPERIMENTS).
+
+
+def _check_gda_curve():
+    curve = config.get("downstream", {}).get("experiments", {}).get("gda_curve")
+    if curve and curve["domain"] not in DOMAIN_NAMES:
+        sys.exit(
+            f"Invalid configuration: downstream.experiments.gda_curve.domain {curve['domain']!r} "
+            f"is not a domain (one of: {', '.join(DOMAIN_NAMES)})."
+        )
+
+
+_check_gda_curve()
+
+
+def curve_counts():
+    """Generated-scan counts of the GDA curve, capped by the scans sampled per domain,
+    unique and sorted; 0 is the supervised-only run."""
+    cap = config["generator"]["sampling"]["scans_per_domain"]
+    return sorted({min(int(n), cap) for n in EXPERIMENTS["gda_curve"]["generated_scans"]})
+
+
+def curve_shards(name, count):
+    """The first sample shards of a domain (config key): those holding its first ``count`` scans."""
+    per_shard = config["generator"]["sampling"]["scans_per_shard"]
+    return domain_sample_shards(name)[: -(-int(count) // per_shard)]
+
+
+def curve_pseudo_labels(name, count):
+    return [d.replace(f"{DATA}/samples/", f"{PSEUDO}/", 1) for d in curve_shards(name, count)]
+
+
+def curve_evaluations():
+    """Val evaluations of the curve's runs by count: 0 is the supervised-only run that
+    results/semkitti_{pct}pct.json compares (reused), N the run on the first N scans."""
+    curve = EXPERIMENTS["gda_curve"]
+    runs = ["real" if n == 0 else f"gda{n}-{curve['domain']}" for n in curve_counts()]
+    return [run_evaluation("semantickitti", curve["backbone"], curve["percent"], r, "val") for r in runs]

@@ -6,6 +6,7 @@
 #   labeler, pseudo-labels      downstream.labeler only (never the generator's settings)
 #   supervised-only runs        real subset + training keys (no generator input, no mixing)
 #   GDA runs                    + sample shards, pseudo-labels, mixing
+#   GDA curve runs              the same, on the first N scans (only the shards holding them)
 #   evaluation                  backend, device, evaluation
 # Sample shards come from rules/generator.smk (rule sample_domain; common.smk's
 # sample_shards(label)); experiments name domains by their config keys.
@@ -16,6 +17,7 @@ PSEUDO = f"{DATA}/pseudo_labels"
 LABELER = f"{DATA}/labeler/semantickitti.pt"
 DOWNSTREAM = config["downstream"]
 EXPERIMENTS = DOWNSTREAM["experiments"]
+GDA_CURVE = EXPERIMENTS["gda_curve"]
 TRAINING_KEYS = ("backend", "device", "voxel_size", "max_voxels", "max_points", "models", "schedule", "augmentation")
 CORRUPTED_DIR = CORRUPTED  # rules/domains.smk
 CORRUPTIONS = config["domains"]["corrupted"]["corruptions"]
@@ -177,6 +179,45 @@ rule train_gda:
         "--domains {params.domains} > {log} 2>&1"
 
 
+rule train_gda_curve:
+    """One point of the GDA curve: the real label subset plus the first N generated scans
+    (wildcard scans) of one domain (sample shards in order, scans in name order), from
+    scratch. Only the shards holding those scans are inputs; the checkpoint records N."""
+    input:
+        subset=f"{SUBSETS}/{{dataset}}_{{pct}}pct.json",
+        samples=lambda w: curve_shards(w.domain, w.scans),
+        pseudo=lambda w: curve_pseudo_labels(w.domain, w.scans),
+    output:
+        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.pt",
+    wildcard_constraints:
+        dataset=r"semantickitti|nuscenes",
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+        scans=r"[1-9]\d*",
+        domain="|".join(DOMAIN_NAMES),
+    params:
+        settings=downstream_settings(*TRAINING_KEYS, "mixing"),
+        seed=config["seed"],
+        work_dir="work/segmentation",
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        mem_mb=8000,
+        runtime=600,
+        gpu=1,
+    shell:
+        "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
+        "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
+        "--threads {threads} --out {output} --samples {input.samples} --pseudo-labels {input.pseudo} "
+        "--domains {wildcards.domain} --max-generated {wildcards.scans} > {log} 2>&1"
+
+
 rule evaluate_segmentor:
     """Per-class IoU, mIoU (semantic-kitti-api and nanmean) and accuracy of one run on the
     official val split (val), plus the corrupted sets (corrupted) or weather subsets (weather)."""
@@ -332,6 +373,38 @@ rule semanticstf_result:
         GDA_RESULT_STANDIN
 
 
+rule gda_curve:
+    """Val mIoU of one backbone on one label subset against the number of generated scans
+    (0 = the supervised-only run, reused), with what each point cost: its training seconds,
+    and sampling and pseudo-labelling seconds per generated scan as measured on the shards."""
+    input:
+        evaluations=curve_evaluations(),
+        samples=curve_shards(GDA_CURVE["domain"], max(curve_counts())),
+        pseudo=curve_pseudo_labels(GDA_CURVE["domain"], max(curve_counts())),
+    output:
+        json="results/gda_curve.json",
+        figure=report("results/figures/gda_curve.png", caption="../workflow/report/gda_curve.rst", category="Accuracy vs time"),
+    params:
+        settings=settings("downstream"),
+        seed=config["seed"],
+        data_source=data_source("semantickitti"),
+        code=code("gda-curve"),
+    log:
+        "logs/downstream/gda_curve.log",
+    benchmark:
+        "benchmarks/out/downstream/gda_curve.tsv"
+    conda:
+        ENV
+    resources:
+        mem_mb=1000,
+        runtime=10,
+    shell:
+        "omnilidar gda-curve --evaluations {input.evaluations} --samples {input.samples} "
+        "--pseudo-labels {input.pseudo} "
+        "--settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
+        "--out {output.json} --figure {output.figure} > {log} 2>&1"
+
+
 rule segmentation:
     """Every segmentation experiment target."""
     input:
@@ -339,3 +412,4 @@ rule segmentation:
         "results/semkittic.json",
         expand("results/nusc_beam32_{pct}pct.json", pct=EXPERIMENTS["nusc_beam32"]["percents"]),
         "results/semanticstf.json",
+        "results/gda_curve.json",

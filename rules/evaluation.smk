@@ -1,8 +1,7 @@
 # Evaluation stage: metric extractors (official weights or self-trained on the real
 # training split), the paper's generation tables, the sampler accuracy/time study and
-# the generator evidence. Needs rules/generator.smk and rules/domains.smk included first.
-
-import os
+# the generator evidence. Needs rules/generator.smk and rules/domains.smk included first;
+# the study's downstream panel reads results/gda_curve.json (rules/downstream.smk).
 
 EXTRACTORS = f"{DATA}/extractors"
 SINGLE_DOMAIN = f"{DATA}/generator_single"
@@ -182,12 +181,14 @@ rule kitti360_generation:
 
 rule sampler_tradeoff:
     """Samplers x steps: per-domain JSD, MMD and the cheapest feature metric against seconds
-    per scan, measured in one run; Pareto front; the effects' curves; downstream hook."""
+    per scan, measured in one run; Pareto front; the effects' curves; downstream mIoU
+    against the compute of generated scans (results/gda_curve.json)."""
     input:
         domains=f"{DATA}/domains/index.json",
         prompts=rules.encode_prompts.output,
         checkpoint=f"{GENERATOR}/full/model.pt",
         effects="results/effects_tradeoff.json",
+        curve="results/gda_curve.json",
         weights=list(TRADEOFF_WEIGHTS.values()),
     output:
         json="results/tradeoff.json",
@@ -196,8 +197,6 @@ rule sampler_tradeoff:
         settings=eval_settings("tradeoff"),
         seed=config["seed"],
         weights=weights_args(TRADEOFF_WEIGHTS),
-        # Downstream mIoU results are read when present (the segmentation stage lands separately).
-        downstream=lambda w: " ".join(p for p in (f"results/semkitti_{k}pct.json" for k in (1, 10, 20)) if os.path.exists(p)),
         code=code("sampler-tradeoff"),
     log:
         "logs/evaluation/tradeoff.log",
@@ -212,7 +211,7 @@ rule sampler_tradeoff:
     shell:
         "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
         "--checkpoint {input.checkpoint} {params.weights} --effects {input.effects} "
-        "--downstream {params.downstream} --settings {params.settings:q} --seed {params.seed} "
+        "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} > {log} 2>&1"
 
 

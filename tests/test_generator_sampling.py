@@ -60,6 +60,9 @@ def test_same_seed_same_scans_and_layout(model_files, tmp_path):
         pts = read_points(tmp_path / "a" / "velodyne" / n.replace(".npz", ".bin"))
         assert pts.shape[1] == 4 and np.isfinite(pts).all()
     assert not (tmp_path / "a.partial").exists()
+    timing = json.loads((tmp_path / "a" / "timing.json").read_text())  # what the shard cost
+    assert timing["scans"] == 3 and timing["seconds"] > 0 and timing["device"] == "cpu"
+    assert timing["seconds_per_scan"] == pytest.approx(timing["seconds"] / 3)
     # another seed or another domain gives different scans
     _sample(root, settings, cache, tmp_path / "c", shard=1, seed=6)
     assert not np.allclose(np.load(tmp_path / "a/range/000003.npz")["image"], np.load(tmp_path / "c/range/000003.npz")["image"])

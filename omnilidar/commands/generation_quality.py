@@ -28,6 +28,7 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.generator.text import load_prompt_cache
+    from omnilidar.generator.sampling import resolve_device
     from omnilidar.generator.training import load_generator
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
@@ -42,7 +43,8 @@ def run(args) -> int:
     extractors = load_extractors(parse_pairs(args.weights, "--weights"), metrics)
     baselines = parse_pairs(args.baseline, "--baseline")
     cache = load_prompt_cache(args.prompts)
-    full, payload = load_generator(args.full)
+    device = resolve_device(settings["device"])
+    full, payload = load_generator(args.full, device)
     spec = range_image_spec(payload["config"])
     timings, scores, shown = {}, {}, {"Real": {}, FULL: {}, BASELINE: {}}
     t_all = time.perf_counter()
@@ -56,7 +58,7 @@ def run(args) -> int:
         scores[domain][FULL]["seconds_per_scan"] = sec
         shown["Real"][domain], shown[FULL][domain] = real_imgs[0], gen[0]
         if domain in baselines:
-            base, base_payload = load_generator(baselines[domain])
+            base, base_payload = load_generator(baselines[domain], device)
             bgen, bsec = sample_images(base, base_payload, cache, domain, n, settings["sampler"], settings["steps"],
                                        args.seed, bs)
             scores[domain][BASELINE] = compare(real, set_features(bgen, spec, extractors, bs), extractors)

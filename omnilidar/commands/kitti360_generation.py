@@ -23,6 +23,7 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.generator.text import load_prompt_cache
+    from omnilidar.generator.sampling import resolve_device
     from omnilidar.generator.training import load_generator
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
@@ -38,13 +39,14 @@ def run(args) -> int:
     extractors = load_extractors(parse_pairs(args.weights, "--weights"), metrics)
     cache = load_prompt_cache(args.prompts)
     t0 = time.perf_counter()
-    full, payload = load_generator(args.full)
+    device = resolve_device(settings["device"])
+    full, payload = load_generator(args.full, device)
     spec = range_image_spec(payload["config"])
     real_imgs = dataset_images(args.index, k["split"], spec, n)
     real = set_features(real_imgs, spec, extractors, bs, "KITTI-360")
     models = {"OmniLiDAR": (full, payload)}
     if args.baseline:
-        models = {"single-domain (R2DM)": load_generator(args.baseline), **models}
+        models = {"single-domain (R2DM)": load_generator(args.baseline, device), **models}
     scores, shown = {}, {"KITTI-360": {domain: real_imgs[0]}}
     for name, (den, pl) in models.items():
         gen, sec = sample_images(den, pl, cache, domain, n, settings["sampler"], settings["steps"], args.seed, bs)

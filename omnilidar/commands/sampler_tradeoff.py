@@ -18,7 +18,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--checkpoint", required=True, help="full OmniLiDAR checkpoint")
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
     parser.add_argument("--effects", default=None, help="results/effects_tradeoff.json (optional)")
-    parser.add_argument("--downstream", nargs="*", default=[], help="results/semkitti_*pct.json present so far")
+    parser.add_argument("--gda-curve", default=None,
+                        help="results/gda_curve.json: downstream mIoU against the compute of generated scans")
     report_outputs_arg(parser, markdown=False)
 
 
@@ -45,20 +46,17 @@ def effect_curves(path) -> list[dict]:
     return curves
 
 
-def downstream_points(paths) -> list[dict]:
-    """Hook for the segmentation study: mIoU against generated scans, from any
-    results/semkitti_*pct.json that lists ``gda_curve`` rows {generated_scans, miou[, seconds]}."""
-    import json
-    from pathlib import Path
+def downstream_curve(path) -> tuple[list[dict], dict | None]:
+    """(rows, setup) of a GDA curve file (mIoU against generated scans and their
+    compute seconds); ([], None) when no file is given. A bad file is an InputError."""
+    if not path:
+        return [], None
+    from omnilidar.report.gda_curve import ROW_FIELDS, read_curve
 
-    rows = []
-    for p in paths or []:
-        if Path(p).is_file():
-            data = json.loads(Path(p).read_text())
-            for r in data.get("gda_curve", []) if isinstance(data, dict) else []:
-                if "generated_scans" in r and "miou" in r:
-                    rows.append({"source": str(p), **r})
-    return sorted(rows, key=lambda r: r["generated_scans"])
+    doc = read_curve(path)
+    keep = (*ROW_FIELDS, "pseudo_label_seconds")
+    rows = [{k: r[k] for k in keep if k in r} for r in doc["rows"]]
+    return rows, {"source": str(path), **(doc.get("setup") or {})}
 
 
 def run(args) -> int:
@@ -68,6 +66,7 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.generator.text import load_prompt_cache
+    from omnilidar.generator.sampling import resolve_device
     from omnilidar.generator.training import load_generator
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors import METRIC_NAMES
@@ -77,11 +76,13 @@ def run(args) -> int:
     from omnilidar.report.generation import collect_weights, pareto_front, tradeoff_figure, write_outputs
 
     settings = validate(dict(args.settings), "evaluation.schema.yaml", source="--settings")
+    # Read before the long sampling study so that a bad curve file fails at once.
+    downstream, downstream_setup = downstream_curve(args.gda_curve)
     cfg = settings["tradeoff"]
     feat = cfg["feature_metric"]
     weights = {k: v for k, v in parse_pairs(args.weights, "--weights").items() if METRIC_NAMES.get(k) == feat}
     extractors = load_extractors(weights, [feat])
-    den, payload = load_generator(args.checkpoint)
+    den, payload = load_generator(args.checkpoint, resolve_device(settings["device"]))
     spec = range_image_spec(payload["config"])
     cache = load_prompt_cache(args.prompts)
     domains = cfg["domains"] or list(payload["domains"])
@@ -131,7 +132,7 @@ def run(args) -> int:
         feature_metric=feat, domains=domains, scans_per_setting=cfg["scans"], real_scans=settings["scans_per_set"],
         weights=w, comparable_with_paper=comparable, points=points, recommended=recommended,
         recommend_rule=f"fastest setting whose mean metric is within {TOLERANCE:.2f}x of the best",
-        effects=effect_curves(args.effects), downstream=downstream_points(args.downstream),
+        effects=effect_curves(args.effects), downstream=downstream, downstream_setup=downstream_setup,
     )
     write_outputs(result, args.out)
     tradeoff_figure(args.figure, result)

@@ -15,6 +15,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--samples", nargs="*", default=[], help="generated sample shards (GDA)")
     parser.add_argument("--pseudo-labels", nargs="*", default=[], help="their pseudo-label shards, same order")
     parser.add_argument("--domains", nargs="*", default=[], help="names of the generated domains (recorded)")
+    parser.add_argument("--max-generated", type=int, default=None, metavar="N",
+                        help="use only the first N generated scans: shards in the order given, scans in name "
+                             "order (empty scans count but are not trained on); default all")
     parser.add_argument("--work-dir", default="work/segmentation", help="resumable training state (undeclared)")
     parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
     parser.add_argument("--out", required=True, help="segmentor checkpoint (weights-only loadable)")
@@ -27,27 +30,34 @@ def run(args) -> int:
     from omnilidar.downstream.seg.pseudo_label import generated_records
     from omnilidar.downstream.seg.subsets import read_subset
     from omnilidar.downstream.seg.training import set_threads, train_segmentor
+    from omnilidar.errors import InputError
 
     set_threads(args.threads)
     settings = validate(dict(args.settings), "downstream.schema.yaml", source="--settings")
     subset = read_subset(args.subset)
     dataset = subset["dataset"]
     real = records_from_entries(subset["entries"], dataset)
-    generated, empty = generated_records(args.samples, args.pseudo_labels)
+    if args.max_generated is not None and not args.samples:
+        raise InputError(None, "--max-generated needs generated --samples")
+    generated, empty = generated_records(args.samples, args.pseudo_labels, limit=args.max_generated)
     if args.samples and not generated:
-        from omnilidar.errors import InputError
-
-        raise InputError(args.samples[0], "the generated shards hold no non-empty scans")
+        raise InputError(args.samples[0], "the generated scans used hold no non-empty scan")
     if empty:
         print(f"note: {empty} generated scans have no points and are not trained on", flush=True)
     info = {
         "role": "gda" if args.samples else "supervised_only",
         "dataset": dataset, "percent": 100.0 * subset["fraction"], "subset": args.subset,
         "subset_scans": subset["num_scans"], "domains": list(args.domains), "empty_generated": empty,
+        # The generated scans taken (empty ones included); train.num_generated counts those trained on.
+        "max_generated": args.max_generated,
+        "generated_selection": None if not args.samples else (
+            "all scans of the shards" if args.max_generated is None
+            else f"first {args.max_generated} scans: shards in the order given, scans in name order"),
     }
     training = {k: settings[k] for k in ("backend", "device", "voxel_size", "max_voxels", "max_points", "models", "schedule",
                                          "augmentation", "mixing")}
     summary = train_segmentor(training, args.backbone, real, generated, get_label_space(dataset), args.out,
                               args.work_dir, args.seed, info=info)
-    print(f"{args.backbone} {info['role']}: {summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")
+    print(f"{args.backbone} {info['role']}: {summary['num_real']} real + {summary['num_generated']} generated scans, "
+          f"{summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")
     return 0

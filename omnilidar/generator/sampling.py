@@ -17,6 +17,7 @@ complete shard is renamed to ``DIR``.
 from __future__ import annotations
 
 import io
+import json
 import os
 import shutil
 import time
@@ -30,6 +31,9 @@ from omnilidar.errors import InputError
 from omnilidar.generator.data import rng_for
 from omnilidar.generator.samplers import make_scheduler
 from omnilidar.generator.schedule import CosineLogSNRSchedule
+
+
+TIMING_FILE = "timing.json"
 
 
 def scan_seed(seed: int, domain: str, index: int) -> int:
@@ -170,6 +174,11 @@ def sample_shard(
         eta = elapsed / done * (len(todo) - done)
         log(f"{domain} shard {shard}: {done}/{len(todo)} scans, {elapsed / done:.2f} s/scan, ETA {eta:.0f} s")
     seconds = time.perf_counter() - t0
+    # What the shard cost (model loading excluded); downstream compute accounting reads it.
+    timing = {"scans": len(todo), "resumed_scans": skipped, "seconds": seconds,
+              "seconds_per_scan": seconds / len(todo) if todo else None, "device": str(device),
+              "sampler": sampling["sampler"], "steps": int(sampling["steps"]), "batch_size": bs}
+    (partial / TIMING_FILE).write_text(json.dumps(timing, indent=1))
     if out_dir.exists():
         shutil.rmtree(out_dir)
     os.replace(partial, out_dir)

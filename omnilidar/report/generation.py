@@ -132,13 +132,16 @@ def pareto_front(seconds: list[float], errors: list[float]) -> list[bool]:
 
 def tradeoff_figure(path, tradeoff: dict) -> None:
     """Metric against seconds per scan per sampler (Pareto front marked), the domain
-    effects' error/time curves, and downstream mIoU against generated scans when present."""
+    effects' error/time curves, and downstream mIoU against the total compute of the
+    generated scans (points labelled with their number) when a GDA curve was read."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from omnilidar.io.atomic import atomic_path
+    from omnilidar.report.gda_curve import draw_miou_vs_compute
+    from omnilidar.report.log_axis import readable_log_x
 
     points = tradeoff["points"]
     metrics = [m for m in ("JSD", "MMD", tradeoff.get("feature_metric")) if m]
@@ -157,7 +160,7 @@ def tradeoff_figure(path, tradeoff: dict) -> None:
         ax.plot([p["seconds_per_scan"] for p in front], [p[key] for p in front], "k--", lw=1, label="Pareto front")
         ax.set_xlabel("seconds per scan")
         ax.set_ylabel(f"{metric}{' (x1e-4)' if metric == 'MMD' else ''}, mean over domains")
-        ax.set_xscale("log")
+        readable_log_x(ax)
         ax.legend(fontsize=7)
     col = len(metrics)
     if tradeoff.get("effects"):
@@ -165,18 +168,16 @@ def tradeoff_figure(path, tradeoff: dict) -> None:
         col += 1
         for curve in tradeoff["effects"]:
             ax.plot(curve["seconds"], curve["error"], "o-", ms=3, label=curve["name"])
-        ax.set_xscale("log")
+        readable_log_x(ax)
         ax.set_xlabel("seconds per scan")
         ax.set_ylabel("effect error")
         ax.set_title("domain effects", fontsize=9)
         ax.legend(fontsize=6)
     if tradeoff.get("downstream"):
-        ax = axes[0, col]
-        rows = tradeoff["downstream"]
-        ax.plot([r["generated_scans"] for r in rows], [r["miou"] for r in rows], "o-")
-        ax.set_xlabel("generated scans")
-        ax.set_ylabel("mIoU")
-        ax.set_title("downstream", fontsize=9)
+        setup = tradeoff.get("downstream_setup") or {}
+        title = "downstream GDA" + (f" ({setup['backbone']}, {setup['percent']:g} % labels)"
+                                    if setup.get("backbone") and isinstance(setup.get("percent"), (int, float)) else "")
+        draw_miou_vs_compute(axes[0, col], tradeoff["downstream"], title)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, format="png")

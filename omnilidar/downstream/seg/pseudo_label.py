@@ -77,16 +77,24 @@ def pseudo_label_shard(model: torch.nn.Module, payload: dict, sample_dir: str | 
     return sidecar
 
 
-def generated_records(sample_dirs: list[str | Path], label_dirs: list[str | Path]) -> tuple[list[dict], int]:
+def generated_records(sample_dirs: list[str | Path], label_dirs: list[str | Path],
+                      limit: int | None = None) -> tuple[list[dict], int]:
     """Training records of generated scans: (records, number of empty scans left out).
 
     Shards are paired in order; each pseudo-label shard must hold exactly one
     label file per scan of its sample shard with one label per point.
+    ``limit`` keeps only the first ``limit`` scans (shards in the order given,
+    scans in name order; empty scans count towards it) and fails when the
+    shards hold fewer; shards after the limit are not read.
     """
     if len(sample_dirs) != len(label_dirs):
         raise InputError(None, f"{len(sample_dirs)} sample shards but {len(label_dirs)} pseudo-label shards")
+    if limit is not None and limit < 1:
+        raise InputError(None, f"the number of generated scans to use must be >= 1, got {limit}")
     records, empty = [], 0
     for sdir, ldir in zip(sample_dirs, label_dirs):
+        if limit is not None and len(records) + empty >= limit:
+            break
         scans = sample_scans(sdir)
         labels_dir = Path(ldir) / "labels"
         if not labels_dir.is_dir():
@@ -99,6 +107,8 @@ def generated_records(sample_dirs: list[str | Path], label_dirs: list[str | Path
             raise InputError(ldir, f"does not match sample shard {sdir}: {len(scans)} scans, {len(labels)} labels"
                                    + (f", first scan without label {missing[0]}" if missing else "")
                                    + (f", first label without scan {extra[0]}" if extra else ""))
+        if limit is not None:
+            scans = scans[: limit - len(records) - empty]
         for scan in scans:
             n = scan.stat().st_size // 16
             if scan.stat().st_size % 16:
@@ -111,4 +121,7 @@ def generated_records(sample_dirs: list[str | Path], label_dirs: list[str | Path
                 empty += 1
                 continue
             records.append({"points": str(scan), "labels": str(labels[scan.stem]), "format": "semantickitti"})
+    if limit is not None and len(records) + empty < limit:
+        raise InputError(sample_dirs[-1] if sample_dirs else None,
+                         f"the generated shards hold {len(records) + empty} scans, fewer than the {limit} asked for")
     return records, empty
