@@ -262,7 +262,9 @@ def test_short_log_axes_get_few_readable_labels(tmp_path):
     assert nice_log_ticks(0.2, 0.6) == [0.2, 0.3, 0.5]  # the coarsest round set with three ticks
     narrow = nice_log_ticks(1.01, 1.09)  # no two round numbers inside: three distinct values inside
     assert len(set(narrow)) == 3 and all(1.01 <= t <= 1.09 for t in narrow)
-    assert tick_labels(nice_log_ticks(1.001, 1.0012)) == ["1.001", "1.0011", "1.0012"]  # as many digits as needed
+    # as many digits as needed; interior points, not the axis ends (their labels get clipped)
+    assert tick_labels(nice_log_ticks(1.001, 1.0012)) == ["1.00105", "1.0011", "1.00115"]
+    assert nice_log_ticks(50.4976, 63.1897) == [53.0, 56.0, 60.0]  # the GDA curve's compute axis
     fig, ax = plt.subplots(figsize=(3, 2))
     ax.plot([0.21, 0.3, 0.45, 0.6], [1, 2, 3, 4], "o-")
     readable_log_x(ax)

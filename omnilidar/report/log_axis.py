@@ -33,9 +33,10 @@ def nice_log_ticks(lo: float, hi: float, max_ticks: int = 5, min_ticks: int = 3)
         if len(inside) >= min_ticks:
             break
     if len(inside) < 2:
-        # No two round numbers fit: three points spread in log space, with as few
-        # significant digits as keep them inside and distinct.
-        spread = np.geomspace(lo, hi, 3)
+        # No two round numbers fit: three interior points spread in log space (not the
+        # axis ends, whose labels get clipped), with as few significant digits as keep
+        # them inside and distinct.
+        spread = np.geomspace(lo, hi, 5)[1:4]
         for digits in range(2, 8):
             inside = np.unique([float(f"{v:.{digits}g}") for v in spread])
             if len(inside) == 3 and inside[0] >= lo and inside[-1] <= hi:
