@@ -195,7 +195,7 @@ GOOD_ROW = {"generated_scans": 4, "miou": 0.3, "train_seconds": 1.0, "sampling_s
 
 @pytest.mark.parametrize("content, problem", [
     (None, "not found"),
-    ("{not json", "not valid JSON"),
+    ("{not json", "invalid JSON"),
     (json.dumps({"rows": []}), "non-empty list 'rows'"),
     (json.dumps({"rows": [{k: v for k, v in GOOD_ROW.items() if k != "miou"}]}), "lacks miou"),
     (json.dumps({"rows": [{**GOOD_ROW, "total_seconds": float("nan")}]}), "total_seconds must be a finite number"),

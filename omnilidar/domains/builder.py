@@ -32,6 +32,7 @@ from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
 from omnilidar.domains.source import LABEL_FORMATS, load_index, read_entry, split_entries
 from omnilidar.domains.spec import NO_EFFECT, DomainSpec, SceneSpec, effect_module
 from omnilidar.errors import InputError
+from omnilidar.io.json_file import read_json
 from omnilidar.io import semantickitti
 from omnilidar.io.atomic import atomic_path
 
@@ -195,10 +196,4 @@ def build_domain_shard(domain: DomainSpec, index_path: str | Path, shard: int, n
 
 def read_sidecar(shard_dir: str | Path) -> dict:
     """A shard's sidecar.json; InputError if missing or not JSON."""
-    path = Path(shard_dir) / "sidecar.json"
-    if not path.is_file():
-        raise InputError(path, "domain shard sidecar not found (is this a build-domain output?)")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"invalid JSON: {err}") from None
+    return read_json(Path(shard_dir) / "sidecar.json", "domain shard sidecar not found (is this a build-domain output?)")

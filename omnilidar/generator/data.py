@@ -24,13 +24,13 @@ them), which is what mmengine's loop discards when it fast-forwards the loader.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from omnilidar.errors import InputError
+from omnilidar.io.json_file import read_json
 
 
 def rng_for(*keys: int) -> np.random.Generator:
@@ -41,12 +41,7 @@ def rng_for(*keys: int) -> np.random.Generator:
 def read_domains_index(path: str | Path) -> dict[str, dict]:
     """Parse the domains index; return {name: {"id": int, "files": [Path, ...]}} sorted by id."""
     path = Path(path)
-    if not path.exists():
-        raise InputError(path, "domains index not found")
-    try:
-        index = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"invalid JSON: {err}") from None
+    index = read_json(path, "domains index not found")
     domains = index.get("domains") if isinstance(index, dict) else None
     if not isinstance(domains, dict) or not domains:
         raise InputError(path, 'expected {"domains": {name: {"id": int, "shards": [...]}}} with at least one domain')

@@ -21,13 +21,13 @@ sorted by ``generated_scans``; :func:`read_curve` checks one for other stages.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
 from omnilidar.errors import InputError
+from omnilidar.io.json_file import read_json
 
 ROW_FIELDS = ("generated_scans", "miou", "train_seconds", "sampling_seconds", "total_seconds")
 TOTAL_NOTE = ("total_seconds = train_seconds + sampling_seconds + pseudo_label_seconds; the labeler's one-off "
@@ -55,12 +55,10 @@ def sampling_seconds_per_scan(shards: list[str | Path]) -> tuple[float, int]:
     seconds, timed = 0.0, 0
     for shard in shards:
         path = Path(shard) / TIMING_FILE
-        if not path.is_file():
-            raise InputError(shard, f"sample shard has no {TIMING_FILE} (written by omnilidar sample)")
+        doc = read_json(path, f"sample shard has no {TIMING_FILE} (written by omnilidar sample)")
         try:
-            doc = json.loads(path.read_text())
             s, n = float(doc["seconds"]), int(doc["scans"])
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError):
             raise InputError(path, "not a sample timing file (needs 'seconds' and 'scans')") from None
         if not math.isfinite(s) or s < 0 or n < 0:
             raise InputError(path, f"seconds must be finite and >= 0 and scans >= 0, got {s}, {n}")
@@ -75,12 +73,10 @@ def pseudo_label_seconds_per_scan(shards: list[str | Path]) -> float:
     seconds, scans = 0.0, 0
     for shard in shards:
         side = Path(shard) / "sidecar.json"
-        if not side.is_file():
-            raise InputError(shard, "pseudo-label shard has no sidecar.json")
+        doc = read_json(side, "pseudo-label shard has no sidecar.json")
         try:
-            doc = json.loads(side.read_text())
             s, n = float(doc["seconds"]), len(doc["scans"])
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError):
             raise InputError(side, "not a pseudo-label sidecar (needs 'seconds' and 'scans')") from None
         if not math.isfinite(s) or s < 0:
             raise InputError(side, f"seconds must be finite and >= 0, got {s}")
@@ -153,12 +149,7 @@ def read_curve(path: str | Path) -> dict:
     """A GDA curve file, checked: ``rows`` of finite numbers (``ROW_FIELDS``), sorted by
     generated scans, mIoU a fraction in [0, 1], seconds >= 0. Returns the document."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "GDA curve file not found (the gda_curve rule writes it)")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"not valid JSON: {err}") from None
+    doc = read_json(path, "GDA curve file not found (the gda_curve rule writes it)")
     rows = doc.get("rows") if isinstance(doc, dict) else None
     if not isinstance(rows, list) or not rows:
         raise InputError(path, "not a GDA curve: needs a non-empty list 'rows'")

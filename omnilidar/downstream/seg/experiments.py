@@ -13,6 +13,7 @@ from pathlib import Path
 
 from omnilidar.downstream.seg.robustness import ROBO3D_MINKUNET18, robustness
 from omnilidar.errors import InputError
+from omnilidar.io.json_file import read_json
 
 KINDS = ("semkitti", "semkittic", "nusc_beam32", "semanticstf")
 
@@ -31,13 +32,8 @@ PAPER = {
 
 def read_evaluation(path: str | Path) -> dict:
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "evaluation file not found")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"not valid JSON: {err}") from None
-    if "sets" not in doc or "train" not in doc:
+    doc = read_json(path, "evaluation file not found")
+    if not isinstance(doc, dict) or "sets" not in doc or "train" not in doc:
         raise InputError(path, "not an evaluate-segmentor output")
     doc["_path"] = str(path)
     return doc

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from omnilidar.data.index import read_index
 from omnilidar.errors import InputError
+from omnilidar.io.json_file import read_json
 from omnilidar.io.atomic import write_text_atomic
 
 FORMAT = "omnilidar-subset/1"
@@ -69,12 +70,7 @@ def write_subset(subset: dict, path: str | Path) -> None:
 def read_subset(path: str | Path) -> dict:
     """Read a subset file written by :func:`write_subset`, checking its shape."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "subset list not found (run the make_subset rule)")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise InputError(path, f"not valid JSON: {err}") from None
+    doc = read_json(path, "subset list not found (run the make_subset rule)")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or not isinstance(doc.get("entries"), list):
         raise InputError(path, f"not a subset list ({FORMAT})")
     if not doc["entries"]:
