@@ -19,21 +19,12 @@ from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
 from omnilidar.report.gda_curve import read_curve
 from omnilidar.report.log_axis import nice_log_ticks, readable_log_x, tick_labels
+from test_downstream_training import _scene  # road / sidewalk ground and a car box, raw labels
 from test_generation_targets import _settings as tradeoff_settings
 from test_generation_targets import fixture_dir  # noqa: F401  (the tiny generator and extractors)
 from workflow_helpers import copy_workflow, planned_jobs, rerun_reasons, snakemake
 
 TINY = "config/test.yaml"
-
-
-def _scene(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Road / sidewalk ground and a car-sized box; raw SemanticKITTI labels."""
-    ground = np.column_stack([rng.uniform(-15, 15, (n, 2)), rng.normal(-1.7, 0.02, n)])
-    car = np.column_stack([rng.uniform(4, 8, n // 4), rng.uniform(-1, 1, n // 4), rng.uniform(-1.7, -0.2, n // 4)])
-    xyz = np.concatenate([ground, car]).astype(np.float32)
-    points = np.column_stack([xyz, rng.uniform(0, 1, len(xyz)).astype(np.float32)])
-    labels = np.concatenate([np.where(ground[:, 0] < 0, 40, 48), np.full(len(car), 10)]).astype(np.uint32)
-    return points, labels
 
 
 def _shards(root, sizes: list[list[int]], seed: int = 0):
@@ -48,7 +39,7 @@ def _shards(root, sizes: list[list[int]], seed: int = 0):
         for n in shard:
             pts, lab = _scene(rng, n) if n else (np.zeros((0, 4), np.float32), np.zeros(0, np.uint32))
             semantickitti.write_points(s / "velodyne" / f"{g:06d}.bin", pts)
-            lab.tofile(p / "labels" / f"{g:06d}.label")
+            lab.astype(np.uint32).tofile(p / "labels" / f"{g:06d}.label")
             g += 1
         samples.append(s)
         pseudo.append(p)
