@@ -131,6 +131,17 @@ def make_hooks(settings: dict, domain_names: list[str], seed: int) -> list:
 
 
 
+def ema_hook(training: dict):
+    """mmengine's EMAHook for the ``training`` settings: constant decay, or with
+    ``ema_warmup`` > 0 a momentum annealed from 1 down to 1 - ema_decay."""
+    from mmengine.hooks import EMAHook
+
+    momentum = 1.0 - training["ema_decay"]
+    if training["ema_warmup"] > 0:
+        return EMAHook(ema_type="MomentumAnnealingEMA", momentum=momentum, gamma=training["ema_warmup"])
+    return EMAHook(momentum=momentum)
+
+
 def _dist_info() -> tuple[str, int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -207,7 +218,7 @@ def train_generator(
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
         default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
-        custom_hooks=[EMAHook(momentum=1.0 - tr["ema_decay"]), *make_hooks(settings, names, seed)],
+        custom_hooks=[ema_hook(tr), *make_hooks(settings, names, seed)],
         launcher=launcher,
         env_cfg=dict(cudnn_benchmark=False, dist_cfg=dict(backend="nccl" if cuda else "gloo")),
         randomness=dict(seed=int(seed)),
