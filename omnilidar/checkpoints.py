@@ -103,3 +103,17 @@ def iteration_hooks(log_interval: int, checkpoint_interval: int, keep_checkpoint
                         max_keep_ckpts=keep_checkpoints, save_last=True),
         sampler_seed=None,
     )
+
+
+def resumable_runner_args(resume_from: Path | None, seed: int, log_interval: int) -> dict:
+    """The mmengine ``Runner`` arguments our iteration-based trainers share: seeded,
+    resumed from ``resume_from`` (see :func:`last_checkpoint`) when there is one, logging
+    per iteration in the mmengine scope."""
+    return dict(
+        randomness=dict(seed=int(seed)),
+        resume=resume_from is not None,
+        load_from=str(resume_from) if resume_from else None,
+        log_processor=dict(by_epoch=False, window_size=log_interval),
+        log_level="INFO",
+        default_scope="mmengine",
+    )

@@ -30,10 +30,10 @@ import logging
 import os
 from pathlib import Path
 
-import numpy as np
 import torch
 
-from omnilidar.checkpoints import checkpoint_iteration, iteration_hooks, last_checkpoint, weights_only_hook
+from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, last_checkpoint, resumable_runner_args,
+                                   weights_only_hook)
 from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight
@@ -221,12 +221,7 @@ def train_generator(
         custom_hooks=[ema_hook(tr), *make_hooks(settings, names, seed)],
         launcher=launcher,
         env_cfg=dict(cudnn_benchmark=False, dist_cfg=dict(backend="nccl" if cuda else "gloo")),
-        randomness=dict(seed=int(seed)),
-        resume=resume_from is not None,
-        load_from=str(resume_from) if resume_from else None,
-        log_processor=dict(by_epoch=False, window_size=tr["log_interval"]),
-        log_level="INFO",
-        default_scope="mmengine",
+        **resumable_runner_args(resume_from, seed, tr["log_interval"]),
     )
     runner.logger.info(
         f"omnilidar generator: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "

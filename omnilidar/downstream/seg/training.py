@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.checkpoints import checkpoint_iteration, iteration_hooks, last_checkpoint, weights_only_hook
+from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, last_checkpoint, resumable_runner_args,
+                                   weights_only_hook)
 from omnilidar.downstream.seg.checkpoints import save_payload
 from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, epoch_length
 from omnilidar.downstream.seg.label_spaces import LabelSpace
@@ -172,12 +173,7 @@ def train_segmentor(
         custom_hooks=[weights_only_hook(meta)],
         launcher="none",
         env_cfg=dict(cudnn_benchmark=False),
-        randomness=dict(seed=int(seed)),
-        resume=resume_from is not None,
-        load_from=str(resume_from) if resume_from else None,
-        log_processor=dict(by_epoch=False, window_size=sched["log_interval"]),
-        log_level="INFO",
-        default_scope="mmengine",
+        **resumable_runner_args(resume_from, seed, sched["log_interval"]),
     )
     params = sum(p.numel() for p in net.parameters())
     runner.logger.info(
