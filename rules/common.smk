@@ -231,14 +231,19 @@ def curve_counts():
     return sorted({min(int(n), cap) for n in EXPERIMENTS["gda_curve"]["generated_scans"]})
 
 
+def _shards_holding(count):
+    """How many leading shards hold the first ``count`` scans of a domain."""
+    return -(-int(count) // config["generator"]["sampling"]["scans_per_shard"])
+
+
 def curve_shards(name, count):
     """The first sample shards of a domain (config key): those holding its first ``count`` scans."""
-    per_shard = config["generator"]["sampling"]["scans_per_shard"]
-    return domain_sample_shards(name)[: -(-int(count) // per_shard)]
+    return domain_sample_shards(name)[: _shards_holding(count)]
 
 
 def curve_pseudo_labels(name, count):
-    return [d.replace(f"{DATA}/samples/", f"{PSEUDO}/", 1) for d in curve_shards(name, count)]
+    """Their pseudo-label shards."""
+    return pseudo_label_shards(name)[: _shards_holding(count)]
 
 
 def curve_evaluations():
