@@ -35,7 +35,7 @@ def run(args) -> int:
     per_scan, measured = 0.0, 0
     if gda:
         per_scan, measured = gc.sampling_seconds_per_scan(args.samples)
-    pseudo_per_scan = gc.pseudo_label_seconds_per_scan(args.pseudo_labels)
+    pseudo_per_scan, labeler_seconds = gc.pseudo_label_seconds_per_scan(args.pseudo_labels)
     rows = gc.curve_rows(evals, per_scan, pseudo_per_scan)
     if rows[-1]["generated_scans"] > measured and gda:
         raise InputError(args.samples[-1], f"the sample shards hold {measured} scans but a run used "
@@ -47,9 +47,8 @@ def run(args) -> int:
              "domain": domains[0] if domains else requested["domain"], "label_space": first["label_space"],
              "selection": "first N generated scans: sample shards in order, scans in name order"}
     timings = {"sampling_per_scan": round(per_scan, 4), "pseudo_labels_per_scan": round(pseudo_per_scan, 4)}
-    sidecar_labeler = _labeler_seconds(args.pseudo_labels)
-    if sidecar_labeler is not None:
-        timings["labeler"] = sidecar_labeler
+    if labeler_seconds is not None:
+        timings["labeler"] = labeler_seconds
     for ev in evals:
         count = gc.generated_count(ev)
         timings[f"train_{count}"] = ev["train"]["seconds"]
@@ -70,16 +69,3 @@ def run(args) -> int:
               f"pseudo-labels {r['pseudo_label_seconds']:.1f})")
     print(f"result: {args.out}  figure: {args.figure}")
     return 0
-
-
-def _labeler_seconds(pseudo_shards) -> float | None:
-    """The labeler's training seconds as its pseudo-label shards record them (None if unknown)."""
-    import json
-    from pathlib import Path
-
-    for shard in pseudo_shards:
-        side = Path(shard) / "sidecar.json"
-        if side.is_file():
-            seconds = json.loads(side.read_text()).get("labeler", {}).get("train", {}).get("seconds")
-            return float(seconds) if isinstance(seconds, (int, float)) else None
-    return None

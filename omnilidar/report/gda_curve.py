@@ -68,9 +68,10 @@ def sampling_seconds_per_scan(shards: list[str | Path]) -> tuple[float, int]:
     return seconds / timed, sum(shard_scans(s) for s in shards)
 
 
-def pseudo_label_seconds_per_scan(shards: list[str | Path]) -> float:
-    """Seconds per scan of the pseudo-label shards (their sidecars' ``seconds`` and ``scans``)."""
-    seconds, scans = 0.0, 0
+def pseudo_label_seconds_per_scan(shards: list[str | Path]) -> tuple[float, float | None]:
+    """(seconds per scan of the pseudo-label shards, from their sidecars' ``seconds`` and
+    ``scans``; the labeler's one-off training seconds the first sidecar records, or None)."""
+    seconds, scans, labeler = 0.0, 0, None
     for shard in shards:
         side = Path(shard) / "sidecar.json"
         doc = read_json(side, "pseudo-label shard has no sidecar.json")
@@ -81,7 +82,11 @@ def pseudo_label_seconds_per_scan(shards: list[str | Path]) -> float:
         if not math.isfinite(s) or s < 0:
             raise InputError(side, f"seconds must be finite and >= 0, got {s}")
         seconds, scans = seconds + s, scans + n
-    return seconds / scans if scans else 0.0
+        if labeler is None:
+            train = (doc.get("labeler") or {}).get("train") or {}
+            if isinstance(train.get("seconds"), (int, float)):
+                labeler = float(train["seconds"])
+    return (seconds / scans if scans else 0.0), labeler
 
 
 def generated_count(ev: dict) -> int:
