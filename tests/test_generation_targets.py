@@ -194,3 +194,27 @@ def test_workflow_plans_the_evaluation_targets(tmp_path):
     assert jobs["train_single_domain"] == 8  # one R2DM-equivalent baseline per domain
     assert jobs["train_extractor"] == 5  # every feature metric self-trained by default
     assert jobs["train_generator"] == 6  # the six ablation presets (full among them)
+
+
+def test_single_domain_baselines_train_as_long_as_the_full_model_unless_told(tmp_path):
+    """Paper protocol by default (baseline steps = generator.training.iterations); an explicit
+    evaluation.generation_quality.baseline_iterations overrides it."""
+    import re
+
+    import yaml
+
+    from tests.workflow_helpers import copy_workflow, snakemake
+
+    work = copy_workflow(tmp_path)
+    full = section_defaults("generator")["training"]["iterations"]  # config.yaml keeps the default
+    assert "generator" not in yaml.safe_load((work / "config" / "config.yaml").read_text())
+    (work / "short.yaml").write_text("evaluation: {generation_quality: {baseline_iterations: 7}}\n")
+
+    def baseline_iterations(*args):
+        out = snakemake(work, "--dry-run", "--printshellcmds", "--forceall", "data/generator_single/Fog/model.pt", *args)
+        settings = re.search(r"--preset single_domain --settings '(\{.*?\})' ", out.stdout).group(1)
+        assert json.loads(settings)["training"]["single_domain"] == "Fog"
+        return json.loads(settings)["training"]["iterations"]
+
+    assert baseline_iterations() == full
+    assert baseline_iterations("--configfile", "config/config.yaml", "short.yaml") == 7
