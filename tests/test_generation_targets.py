@@ -212,9 +212,10 @@ def test_single_domain_baselines_train_as_long_as_the_full_model_unless_told(tmp
 
     def baseline_iterations(*args):
         out = snakemake(work, "--dry-run", "--printshellcmds", "--forceall", "data/generator_single/Fog/model.pt", *args)
-        settings = re.search(r"--preset single_domain --settings '(\{.*?\})' ", out.stdout).group(1)
-        assert json.loads(settings)["training"]["single_domain"] == "Fog"
-        return json.loads(settings)["training"]["iterations"]
+        match = re.search(r"--preset single_domain --settings '(\{.*?\})' ", out.stdout)
+        training = json.loads(match.group(1))["training"]
+        assert training["single_domain"] == "Fog"
+        return training["iterations"]
 
     assert baseline_iterations() == full
     assert baseline_iterations("--configfile", "config/config.yaml", "short.yaml") == 7

@@ -32,7 +32,7 @@ def tiny_settings(**training) -> dict:
     s["model"]["mamba"].update(d_state=4, backend="mambapy")
     s["training"].update(
         batch_size=4, iterations=3, warmup_iters=1, checkpoint_interval=2, log_interval=1, ema_decay=0.9,
-        ema_warmup=0, **training
+        **{"ema_warmup": 0, **training},  # no warm-up unless a test asks for it
     )
     s["sampling"].update(steps=3, batch_size=2, scans_per_shard=3)
     return s
