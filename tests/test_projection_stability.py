@@ -149,12 +149,15 @@ def test_property_winner_is_nearest(pts):
     pts = np.concatenate([pts, pts[::3], pts[::2] * np.float32(1.01)])
     proj = project(pts, SMALL)
     r = np.linalg.norm(pts[:, :3].astype(np.float64), axis=1).astype(np.float32)
+    # the 1.01x copies may pass max_range: only such points may be dropped, and they win no pixel
+    assert np.all(r[~proj.valid] >= np.float32(SMALL.max_range) * np.float32(1 - 1e-6))
     pix = proj.point_row.astype(np.int64) * SMALL.width + proj.point_col
+    pix = np.where(proj.valid, pix, -1)  # invalid points fall into no pixel
     best = np.full(SMALL.height * SMALL.width, np.inf, np.float32)
-    np.minimum.at(best, pix, r)
+    np.minimum.at(best, pix[proj.valid], r[proj.valid])
     flat_idx = proj.point_index_img.reshape(-1)
     filled = flat_idx >= 0
-    assert np.array_equal(np.flatnonzero(filled), np.unique(pix))
+    assert np.array_equal(np.flatnonzero(filled), np.unique(pix[proj.valid]))
     assert np.array_equal(r[flat_idx[filled]], best[filled])
     # tie-break: the lowest index among the nearest
     for p in np.flatnonzero(filled)[:50]:
