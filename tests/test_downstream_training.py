@@ -70,16 +70,18 @@ def test_training_writes_a_weights_only_checkpoint(trained):
     assert raw["model"]["backbone"] == "minkunet" and raw["label_space"] == "semantickitti"
     assert all(torch.isfinite(v).all() for v in raw["state_dict"].values() if v.is_floating_point())
     # The work dir's resumable checkpoints are weights-only loadable too.
-    last = (root / "work" / summary["work_dir"].split("/")[-1] / "last_checkpoint").read_text().strip()
-    ckpt = torch.load(last, weights_only=True)
+    last = (root / "work" / "last_checkpoint").read_text()
+    assert last == "iter_3.pth"  # a bare name: a copied work dir reads its own checkpoint
+    ckpt = torch.load(root / "work" / last, weights_only=True)
     assert ckpt["meta"]["iter"] == 3
+    assert ckpt["meta"]["omnilidar"]["provenance"]["command"] == "train-segmentor"
 
 
 def test_rerun_resumes_and_reproduces_the_weights(trained, tmp_path):
     root, real, val, out, summary = trained
     again = tmp_path / "again.pt"
     s2 = train_segmentor(_settings(), "minkunet", real, [], SPACE, again, root / "work", seed=0)
-    assert s2["work_dir"] == summary["work_dir"]  # same config -> resumed from the finished state
+    assert s2["resumed_from"] == 3  # same job -> resumed from the finished state
     a = torch.load(out, weights_only=True)["state_dict"]
     b = torch.load(again, weights_only=True)["state_dict"]
     assert all(torch.equal(a[k], b[k]) for k in a)
@@ -152,3 +154,40 @@ def test_cli_bad_input_is_one_line_and_leaves_nothing(trained, tmp_path, capsys)
     assert code == 0, err
     doc = json.loads((tmp_path / "e.json").read_text())
     assert doc["sets"]["val"]["num_scans"] == 2 and len(doc["sets"]["val"]["iou"]) == 19
+
+
+def test_learning_rate_warms_up_then_anneals_to_zero():
+    from omnilidar.downstream.seg.training import learning_rate
+
+    sched = {"lr": 0.1, "warmup_iters": 4, "warmup_start_factor": 0.1}
+    assert learning_rate(0, 20, sched) == pytest.approx(0.01)
+    assert learning_rate(2, 20, sched) == pytest.approx(0.055)
+    assert learning_rate(4, 20, sched) == pytest.approx(0.1)
+    assert learning_rate(12, 20, sched) == pytest.approx(0.05)
+    assert learning_rate(20, 20, sched) == pytest.approx(0.0, abs=1e-12)
+    # A longer run at the same iteration is earlier in its schedule.
+    assert learning_rate(12, 40, sched) > learning_rate(12, 20, sched)
+
+
+def test_changed_scan_contents_start_fresh_and_more_iterations_resume(tmp_path, capsys):
+    """The records name the same files; only their contents change, which the input digest sees."""
+    real = records_from_entries(_write_sequence(tmp_path / "train", 3, 0), "semantickitti")
+    inputs = {"scans": tmp_path / "train"}
+    work = tmp_path / "work"
+    first = train_segmentor(_settings(), "minkunet", real, [], SPACE, tmp_path / "a.pt", work, seed=0, inputs=inputs)
+    assert first["resumed_from"] == 0
+    import shutil
+
+    shutil.rmtree(tmp_path / "train")
+    _write_sequence(tmp_path / "train", 3, 7)  # same names, other scans
+    capsys.readouterr()
+    second = train_segmentor(_settings(), "minkunet", real, [], SPACE, tmp_path / "b.pt", work, seed=0, inputs=inputs)
+    log = capsys.readouterr().out
+    assert second["resumed_from"] == 0 and "starting fresh" in log and "input contents changed: scans" in log
+    a = torch.load(tmp_path / "a.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / "b.pt", weights_only=True)["state_dict"]
+    assert any(not torch.equal(a[k], b[k]) for k in a if a[k].is_floating_point())
+    longer = train_segmentor(_settings(iterations=4), "minkunet", real, [], SPACE, tmp_path / "c.pt", work, seed=0,
+                             inputs=inputs)
+    assert longer["resumed_from"] == 3 and longer["iterations"] == 4
+    assert "resuming at iteration 3" in capsys.readouterr().out

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from omnilidar.config import section_defaults
+from omnilidar.manifest import digest
 
 TINY_DOMAINS = ("Vehicle", "Fog", "Beam32")
 
@@ -61,7 +62,8 @@ def make_domains(root: Path, settings: dict, scans_per_domain=(5, 3, 4), seed: i
         shard.mkdir(parents=True, exist_ok=True)
         for k in range(n):
             np.savez(shard / f"{k:06d}.npz", image=geometric_image(rng, h, w, i))
-        index["domains"][name] = {"id": i, "shards": [str(shard)]}
+        # Content digests of the shards, as the domain builder's index records them.
+        index["domains"][name] = {"id": i, "shards": [str(shard)], "shard_digests": [digest(shard)]}
     path = root / "domains.json"
     path.write_text(json.dumps(index))
     return path

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import pickle
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -42,12 +44,17 @@ def trained(tmp_path_factory):
 def test_three_iterations_write_weights_only_checkpoints(trained):
     root, settings, _, _, summary = trained
     assert summary["iterations"] == 3
-    run_dir = root / "work" / summary["config_hash"]
+    run_dir = root / "work"
+    assert summary["work_dir"] == str(run_dir) and summary["resumed_from"] == 0
     ckpts = sorted(run_dir.glob("iter_*.pth"))
     assert [c.name for c in ckpts] == ["iter_2.pth", "iter_3.pth"]
+    assert (run_dir / "last_checkpoint").read_text() == "iter_3.pth"  # relative: a copied tree reads its own
     for c in ckpts:  # torch >= 2.6 default: weights_only=True must work on our own checkpoints
         ck = torch.load(c, map_location="cpu", weights_only=True)
         assert ck["meta"]["omnilidar"]["config"] == settings
+        stored = ck["meta"]["omnilidar"]["provenance"]
+        assert stored["command"] == "train-generator" and stored["seed"] == 3 and len(stored["code"]) == 16
+        assert set(stored["inputs"]) == {"domains", "prompts"} and "torch" in stored["versions"]
         assert "ema_state_dict" in ck and "optimizer" in ck
         hub = ck["message_hub"]["log_scalars"]
         assert hub and all(isinstance(v, dict) for v in hub.values())
@@ -68,14 +75,15 @@ def test_final_checkpoint_loads_into_a_fresh_denoiser(trained):
 
 def test_resume_after_interruption_reproduces_the_uninterrupted_run(trained):
     root, settings, index, prompts, summary = trained
-    run_dir = root / "work" / summary["config_hash"]
-    # Simulate a crash right after the iteration-2 checkpoint: a second work dir holding it only.
-    work2 = root / "work2"
-    run2 = work2 / summary["config_hash"]
+    run_dir = root / "work"
+    # Simulate a crash right after the iteration-2 checkpoint: a second work dir holding it only,
+    # its marker an absolute path into the first tree (as mmengine writes it): it must read its own.
+    run2 = root / "work2"
     run2.mkdir(parents=True)
     (run2 / "iter_2.pth").write_bytes((run_dir / "iter_2.pth").read_bytes())
-    (run2 / "last_checkpoint").write_text(str(run2 / "iter_2.pth"))
-    resumed = train_generator(settings, index, prompts, work2, root / "ckpt2.pt", seed=3)
+    (run2 / "last_checkpoint").write_text(str(run_dir / "iter_2.pth"))
+    resumed = train_generator(settings, index, prompts, run2, root / "ckpt2.pt", seed=3)
+    assert resumed["resumed_from"] == 2
     assert resumed["iterations"] == 3
     a = torch.load(root / "ckpt.pt", weights_only=True)["state_dict"]
     b = torch.load(root / "ckpt2.pt", weights_only=True)["state_dict"]
@@ -106,8 +114,8 @@ def test_message_hub_round_trip_is_weights_only_safe(tmp_path):
         torch.load(tmp_path / "raw.pt", weights_only=True)
 
 
-def test_changed_config_trains_in_a_new_work_dir(trained):
-    from omnilidar.generator.training import config_hash
+def test_trajectory_settings_leave_out_only_what_extends_a_run(trained):
+    from omnilidar.generator.training import trajectory_settings
 
     settings = trained[1]
     other = json.loads(json.dumps(settings))
@@ -115,15 +123,14 @@ def test_changed_config_trains_in_a_new_work_dir(trained):
     longer = json.loads(json.dumps(settings))
     longer["training"]["iterations"] = 10
     longer["sampling"]["steps"] = 99
-    assert config_hash(other, 3) != config_hash(settings, 3)
-    assert config_hash(longer, 3) == config_hash(settings, 3)  # extending a run resumes it
-    assert config_hash(settings, 4) != config_hash(settings, 3)
+    assert trajectory_settings(other) != trajectory_settings(settings)
+    assert trajectory_settings(longer) == trajectory_settings(settings)  # extending a run resumes it
 
 
 def _ema_gap(root, summary) -> float:
     """Distance between the final EMA weights and the raw weights of the last step."""
     final = torch.load(root / summary["out"], map_location="cpu", weights_only=True)["state_dict"]
-    last = torch.load(sorted((root / "work" / summary["config_hash"]).glob("iter_*.pth"))[-1],
+    last = torch.load(sorted(Path(summary["work_dir"]).glob("iter_*.pth"))[-1],
                       map_location="cpu", weights_only=True)["ema_state_dict"]  # mmengine swaps: raw here
     raw = {k[len("module.denoiser."):]: v for k, v in last.items() if k.startswith("module.denoiser.")}
     return float(sum((final[k].float() - raw[k].float()).square().sum() for k in raw if final[k].is_floating_point()))
@@ -138,7 +145,47 @@ def test_ema_warmup_keeps_short_runs_off_the_initial_weights(trained):
     assert type(ema_hook({"ema_decay": 0.9, "ema_warmup": 0})).__name__ == "EMAHook"
     assert ema_hook({"ema_decay": 0.9, "ema_warmup": 5}).ema_cfg["type"] == "MomentumAnnealingEMA"
     warm = dict(settings, training=dict(settings["training"], ema_warmup=1))
-    warm_summary = train_generator(warm, index, prompts, root / "work", root / "ckpt_warm.pt", seed=3)
+    warm_summary = train_generator(warm, index, prompts, root / "work_warm", root / "ckpt_warm.pt", seed=3)
     gap_plain = _ema_gap(root, dict(summary, out="ckpt.pt"))
     gap_warm = _ema_gap(root, dict(warm_summary, out="ckpt_warm.pt"))
     assert gap_plain > 0 and gap_warm < 0.5 * gap_plain
+
+
+def test_changed_input_contents_start_fresh_and_say_so(trained, capsys):
+    """Same work dir, same settings and seed, other domain data: the finished checkpoint
+    is not this job's; the run starts fresh and writes other weights."""
+    root, settings, _, prompts, _ = trained
+    work = root / "work_inputs"
+    first = make_domains(root / "data_a", settings, seed=0)
+    train_generator(settings, first, prompts, work, root / "inputs_a.pt", seed=3)
+    other = make_domains(root / "data_b", settings, seed=1)  # same layout, other pixels
+    capsys.readouterr()
+    again = train_generator(settings, other, prompts, work, root / "inputs_b.pt", seed=3)
+    log = capsys.readouterr().out
+    assert again["resumed_from"] == 0
+    assert "starting fresh" in log and "input contents changed: domains" in log
+    a = torch.load(root / "inputs_a.pt", weights_only=True)["state_dict"]
+    b = torch.load(root / "inputs_b.pt", weights_only=True)["state_dict"]
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+
+
+def test_raising_iterations_resumes_from_a_moved_work_dir(trained, capsys):
+    """A finished run copied elsewhere (the original removed, so nothing outside the copy
+    can be read) resumes at its last iteration when ``iterations`` is raised."""
+    root, settings, index, prompts, summary = trained
+    moved = root / "moved" / "work"
+    shutil.copytree(root / "work", moved)
+    hidden = root / "work_hidden"
+    (root / "work").rename(hidden)
+    try:
+        longer = json.loads(json.dumps(settings))
+        longer["training"]["iterations"] = 4
+        capsys.readouterr()
+        resumed = train_generator(longer, index, prompts, moved, root / "ckpt_longer.pt", seed=3)
+        log = capsys.readouterr().out
+    finally:
+        hidden.rename(root / "work")
+    assert resumed["resumed_from"] == 3 and resumed["iterations"] == 4
+    assert f"resuming at iteration 3 from iter_3.pth in {moved}" in log
+    assert str(hidden) not in log and str(root / "work") + "/" not in log
+    assert sorted(p.name for p in moved.glob("iter_*.pth"))[-1] == "iter_4.pth"

@@ -56,8 +56,9 @@ def run(args) -> int:
     }
     training = {k: settings[k] for k in ("backend", "device", "voxel_size", "max_voxels", "max_points", "models", "schedule",
                                          "augmentation", "mixing")}
+    inputs = {"subset": args.subset, "samples": list(args.samples), "pseudo_labels": list(args.pseudo_labels)}
     summary = train_segmentor(training, args.backbone, real, generated, get_label_space(dataset), args.out,
-                              args.work_dir, args.seed, info=info)
+                              args.work_dir, args.seed, info=info, inputs=inputs)
     print(f"{args.backbone} {info['role']}: {summary['num_real']} real + {summary['num_generated']} generated scans, "
           f"{summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")
     return 0

@@ -14,6 +14,7 @@ from pathlib import Path
 from omnilidar.errors import InputError
 from omnilidar.io import kitti360, pi3det, semantickitti
 from omnilidar.io.atomic import write_text_atomic
+from omnilidar.manifest import listing_digest
 
 DATASETS = ("semantickitti", "kitti360", "pi3det", "nuscenes")
 
@@ -116,7 +117,10 @@ def build_index(dataset: str, root: str | Path) -> dict:
     splits = globals()[f"index_{dataset}"](root, missing)
     if not any(splits.values()):
         raise InputError(root, f"no {dataset} scans found under this root")
-    return {"dataset": dataset, "root": str(root), "splits": splits, "missing": missing}
+    # What the consumers' resumable state is keyed by: the exact content of shards
+    # that carry a manifest (synthetic ones), a listing (names, sizes, times) otherwise.
+    return {"dataset": dataset, "root": str(root), "root_digest": listing_digest(root), "splits": splits,
+            "missing": missing}
 
 
 def write_index(index: dict, path: str | Path) -> None:

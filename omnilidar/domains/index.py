@@ -3,7 +3,8 @@
 Format (read by ``omnilidar.generator.data.read_domains_index``)::
 
     {"domains": {"<label>": {"id": int, "name": "<config key>", "num_scans": int,
-                             "shards": ["<dir relative to the index>", ...]}}}
+                             "shards": ["<dir relative to the index>", ...],
+                             "shard_digests": ["<sha256 of the shard's manifest>", ...]}}}
 
 Keys are the domains' labels (the generator's prompt-pool names, e.g.
 ``WetGround``). Every shard's sidecar must belong to a configured domain with the
@@ -19,6 +20,7 @@ from pathlib import Path
 from omnilidar.domains.builder import range_image_spec, read_sidecar
 from omnilidar.domains.spec import domains_from_settings
 from omnilidar.errors import InputError
+from omnilidar.manifest import digest
 
 
 def domains_index(settings: dict, shard_dirs: list[str | Path], out: str | Path) -> dict:
@@ -49,6 +51,8 @@ def domains_index(settings: dict, shard_dirs: list[str | Path], out: str | Path)
             "name": name,
             "num_scans": sum(c for _, _, _, c in shards),
             "shards": [os.path.relpath(Path(d).resolve(), base) for _, _, d, _ in shards],
+            # Content digests (manifests) of the shards: the generator's resumable state is keyed by them.
+            "shard_digests": [digest(d) for _, _, d, _ in shards],
             # Field of view, pitch and range limits of this domain's images: the
             # generator's samples of this domain are back-projected with them.
             "range_image": dataclasses.asdict(range_image_spec(spec, settings)),

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from omnilidar.errors import InputError
+from omnilidar.manifest import write_manifest
 from omnilidar.generator.data import rng_for
 from omnilidar.generator.samplers import make_scheduler
 from omnilidar.generator.schedule import CosineLogSNRSchedule
@@ -179,6 +180,7 @@ def sample_shard(
               "seconds_per_scan": seconds / len(todo) if todo else None, "device": str(device),
               "sampler": sampling["sampler"], "steps": int(sampling["steps"]), "batch_size": bs}
     (partial / TIMING_FILE).write_text(json.dumps(timing, indent=1))
+    write_manifest(partial)
     if out_dir.exists():
         shutil.rmtree(out_dir)
     os.replace(partial, out_dir)

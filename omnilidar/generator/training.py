@@ -14,9 +14,12 @@ plain tensors, dicts and Python numbers in ``before_save_checkpoint`` and back i
 ``after_load_checkpoint``. Each checkpoint also carries the resolved generator
 config (``meta["omnilidar"]["config"]``).
 
-Resuming: the work directory is keyed by a hash of the resolved config and seed,
-so an interrupted run resumes from its last checkpoint and a changed config starts
-afresh. The batch samplers are deterministic streams; on resume the first k
+Resuming: each checkpoint stores the job's provenance (settings without the keys
+that only extend a run, seed, the code hash of ``train-generator``, and content
+digests of the domains index and the prompt cache). A checkpoint in the work
+directory is resumed only when that provenance matches; otherwise the run starts
+fresh and the log says why (:func:`omnilidar.checkpoints.resume_point`). Raising
+``iterations`` resumes. The batch samplers are deterministic streams; on resume the first k
 batches are empty (no data is read) while mmengine fast-forwards its loader.
 Training noise (t and epsilon) comes from a generator seeded by
 (seed, rank, iteration), so a resumed run draws the same noise it would have drawn.
@@ -32,8 +35,8 @@ from pathlib import Path
 
 import torch
 
-from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, last_checkpoint, resumable_runner_args,
-                                   weights_only_hook)
+from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker, resumable_runner_args,
+                                   resume_point, weights_only_hooks)
 from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight
@@ -48,12 +51,11 @@ CHECKPOINT_FORMAT = "omnilidar-generator/1"
 _RESUMABLE_KEYS = ("iterations", "checkpoint_interval", "keep_checkpoints", "log_interval", "num_workers")
 
 
-def config_hash(settings: dict, seed: int) -> str:
-    """Short content hash of what determines the training trajectory (config and seed)."""
+def trajectory_settings(settings: dict) -> dict:
+    """The settings that determine the training trajectory (provenance of a run)."""
     relevant = {k: v for k, v in settings.items() if k != "sampling"}
     relevant["training"] = {k: v for k, v in settings["training"].items() if k not in _RESUMABLE_KEYS}
-    blob = json.dumps({"settings": relevant, "seed": int(seed)}, sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+    return json.loads(json.dumps(relevant, sort_keys=True, default=str))
 
 
 # --------------------------------------------------------------------------- model
@@ -108,7 +110,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
 # --------------------------------------------------------------------------- hooks
 
 
-def make_hooks(settings: dict, domain_names: list[str], seed: int) -> list:
+def make_hooks(settings: dict, domain_names: list[str], seed: int, provenance: dict) -> list:
     """Our custom hooks: weights-only-safe checkpoints (+ resolved config) and the step counter."""
     from mmengine.hooks import Hook
     from mmengine.model import is_model_wrapper
@@ -122,8 +124,8 @@ def make_hooks(settings: dict, domain_names: list[str], seed: int) -> list:
             model = runner.model.module if is_model_wrapper(runner.model) else runner.model
             model.iteration = runner.iter
 
-    meta = {"config": settings, "domains": list(domain_names), "seed": int(seed)}
-    return [weights_only_hook(meta), IterationHook()]
+    meta = {"config": settings, "domains": list(domain_names), "seed": int(seed), "provenance": provenance}
+    return [*weights_only_hooks(meta), IterationHook()]
 
 
 # --------------------------------------------------------------------------- entry point
@@ -140,6 +142,10 @@ def ema_hook(training: dict):
     if training["ema_warmup"] > 0:
         return EMAHook(ema_type="MomentumAnnealingEMA", momentum=momentum, gamma=training["ema_warmup"])
     return EMAHook(momentum=momentum)
+
+
+def _log(message: str) -> None:
+    print(message, flush=True)
 
 
 def _dist_info() -> tuple[str, int, int]:
@@ -175,9 +181,10 @@ def train_generator(
     tokens, mask, spans = stack_prompts(cache, names)
     dataset = RangeImageDataset(domains, (h, w), spans)
 
-    run_dir = Path(work_dir) / config_hash(settings, seed)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    resume_from = last_checkpoint(run_dir)
+    run_dir = Path(work_dir)
+    provenance = job_provenance("train-generator", trajectory_settings(settings), seed,
+                                {"domains": domains_index, "prompts": prompts_path})
+    resume_from = resume_point(run_dir, provenance, tr["iterations"], log=_log)
     skip = checkpoint_iteration(resume_from) if resume_from else 0
 
     launcher, rank, world = _dist_info()
@@ -218,7 +225,7 @@ def train_generator(
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
         default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
-        custom_hooks=[ema_hook(tr), *make_hooks(settings, names, seed)],
+        custom_hooks=[ema_hook(tr), *make_hooks(settings, names, seed, provenance)],
         launcher=launcher,
         env_cfg=dict(cudnn_benchmark=False, dist_cfg=dict(backend="nccl" if cuda else "gloo")),
         **resumable_runner_args(resume_from, seed, tr["log_interval"]),
@@ -226,9 +233,10 @@ def train_generator(
     runner.logger.info(
         f"omnilidar generator: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
         f"{len(dataset)} scans, strategy {tr['strategy']}, {tr['iterations']} iterations"
-        + (f", resuming at iteration {skip} from {resume_from}" if resume_from else "")
+        + (f", resuming at iteration {skip} from {resume_from.name}" if resume_from else ", from scratch")
     )
     runner.train()
+    relative_marker(run_dir)
 
     ema = next(h for h in runner._hooks if isinstance(h, EMAHook)).ema_model.module
     state = {k: v.detach().cpu().clone() for k, v in ema.denoiser.state_dict().items()}
@@ -236,7 +244,7 @@ def train_generator(
         "iterations": int(runner.iter),
         "parameters": count_parameters(denoiser),
         "work_dir": str(run_dir),
-        "config_hash": run_dir.name,
+        "resumed_from": skip,
     }
     if is_main_process():
         payload = {
@@ -249,6 +257,7 @@ def train_generator(
             "domain_range_images": {n: domains[n]["range_image"] for n in names if "range_image" in domains[n]},
             "text": {"encoder": cache["encoder"], "model": cache["model"], "dim": int(cache["dim"])},
             "seed": int(seed),
+            "provenance": provenance,
             **{k: v for k, v in summary.items() if k != "work_dir"},
         }
         with atomic_path(out) as tmp:

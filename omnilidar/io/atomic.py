@@ -1,6 +1,8 @@
 """Atomic file and directory writes: write to a temporary name, then rename.
 
-A failed or interrupted stage never leaves a half-written output behind.
+A failed or interrupted stage never leaves a half-written output behind. A
+directory gets its content manifest (:mod:`omnilidar.manifest`) before the rename,
+so whoever consumes it can digest it cheaply.
 """
 
 from __future__ import annotations
@@ -12,13 +14,15 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from omnilidar.manifest import write_manifest
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary sibling path; on success rename it to ``path``.
 
     Works for files and for directories (the caller creates whichever it needs at
-    the yielded path). On any exception the temporary is removed and ``path`` is
+    the yielded path; a directory gets ``MANIFEST.sha256``). On any exception the temporary is removed and ``path`` is
     left untouched.
     """
     path = Path(path)
@@ -27,6 +31,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     target = tmp / path.name
     try:
         yield target
+        if target.is_dir():
+            write_manifest(target)
         if path.is_dir() and not path.is_symlink():
             shutil.rmtree(path)
         os.replace(target, path)

@@ -71,4 +71,5 @@ def train_labeler(section: dict, index_path: str | Path, out: str | Path, work_d
     if not real:
         raise InputError(index_path, "train split holds no scans")
     return train_segmentor(training_settings(section), section["backbone"], real, [], get_label_space(LABEL_SPACE),
-                           out, work_dir, seed, info={"role": "labeler", "train_scans": len(real)})
+                           out, work_dir, seed, info={"role": "labeler", "train_scans": len(real)},
+                           inputs={"index": index_path}, command="train-labeler")

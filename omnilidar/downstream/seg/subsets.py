@@ -22,6 +22,7 @@ from omnilidar.data.index import read_index
 from omnilidar.errors import InputError
 from omnilidar.io.json_file import read_json
 from omnilidar.io.atomic import write_text_atomic
+from omnilidar.manifest import digest
 
 FORMAT = "omnilidar-subset/1"
 
@@ -59,6 +60,8 @@ def make_subset(index_path: str | Path, split: str, fraction: float) -> dict:
         "every": every_k(fraction),
         "num_scans": len(chosen),
         "source_scans": len(entries),
+        # The index's content digest (it records its root's): trainers key resumable state by it.
+        "index_digest": digest(index_path),
         "entries": chosen,
     }
 

@@ -14,9 +14,13 @@ a torch generator seeded from the run's seed, augmentation from per-draw numpy
 generators (see :mod:`.dataset`): the same config and seed give the same
 training trajectory on the same device.
 
-The work directory is keyed by a hash of everything that determines the
-trajectory (settings, backbone, scan lists, seed); an interrupted run resumes
-from its last checkpoint, a changed one starts afresh.
+Each checkpoint stores the job's provenance: everything that determines the
+trajectory (settings without the keys that only extend a run, backbone, scan
+lists, seed), the code hash of the command, and content digests of its inputs.
+A checkpoint in the work directory is resumed only when it matches; otherwise the
+run starts fresh and the log says why. The learning rate is a function of the
+iteration and the run's length (linear warm-up, cosine to zero), so raising
+``iterations`` resumes a finished run and continues on the longer schedule.
 """
 
 from __future__ import annotations
@@ -30,8 +34,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, last_checkpoint, resumable_runner_args,
-                                   weights_only_hook)
+from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker,
+                                   resumable_runner_args, resume_point, weights_only_hooks)
 from omnilidar.downstream.seg.checkpoints import save_payload
 from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, epoch_length
 from omnilidar.downstream.seg.label_spaces import LabelSpace
@@ -39,8 +43,8 @@ from omnilidar.downstream.seg.models import build_segmentor, model_spec
 from omnilidar.downstream.seg.voxelize import IGNORE_INDEX, SegBatch
 from omnilidar.errors import InputError
 
-# Keys that do not change what one step computes: changing them resumes the same run.
-_RESUMABLE = ("log_interval", "checkpoint_interval", "num_workers")
+# Keys that do not change what one step computes or only extend the run: changing them resumes it.
+_RESUMABLE = ("log_interval", "checkpoint_interval", "num_workers", "iterations", "epochs")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -59,13 +63,39 @@ def total_iterations(schedule: dict, num_real: int, num_generated: int, mixing: 
     return int(schedule["epochs"]) * max(1, per_epoch)
 
 
-def run_hash(settings: dict, backbone: str, real: list[dict], generated: list[dict], seed: int) -> str:
-    """Hash of what determines the training trajectory (names the work directory)."""
+def trajectory(settings: dict, backbone: str, real: list[dict], generated: list[dict]) -> dict:
+    """What determines the training trajectory besides seed, code and input contents."""
     relevant = json.loads(json.dumps(settings))
     relevant["schedule"] = {k: v for k, v in settings["schedule"].items() if k not in _RESUMABLE}
-    blob = json.dumps({"settings": relevant, "backbone": backbone, "real": real, "generated": generated,
-                       "seed": int(seed)}, sort_keys=True)
-    return hashlib.sha256(blob.encode()).hexdigest()[:12]
+    scans = [[r.get("points"), r.get("labels")] for r in real + generated]
+    return {"training": relevant, "backbone": backbone, "num_real": len(real), "num_generated": len(generated),
+            "scans": hashlib.sha256(json.dumps(scans, default=str).encode()).hexdigest()}
+
+
+def learning_rate(iteration: int, total: int, schedule: dict) -> float:
+    """Linear warm-up from ``lr * warmup_start_factor``, then cosine annealing to zero at ``total``."""
+    base = float(schedule["lr"])
+    warmup = min(int(schedule["warmup_iters"]), max(total - 1, 0))
+    if iteration < warmup:
+        start = float(schedule["warmup_start_factor"])
+        return base * (start + (1.0 - start) * iteration / warmup)
+    span = max(total - warmup, 1)
+    return base * 0.5 * (1.0 + math.cos(math.pi * min(iteration - warmup, span) / span))
+
+
+def schedule_hook(total: int, schedule: dict):
+    """Sets every parameter group's learning rate from the global iteration before each step."""
+    from mmengine.hooks import Hook
+
+    class LearningRateHook(Hook):
+        priority = "VERY_HIGH"
+
+        def before_train_iter(self, runner, batch_idx: int, data_batch=None) -> None:
+            lr = learning_rate(runner.iter, total, schedule)
+            for group in runner.optim_wrapper.optimizer.param_groups:
+                group["lr"] = lr
+
+    return LearningRateHook()
 
 
 def make_model(net: torch.nn.Module, loss_on: str):
@@ -113,13 +143,17 @@ def train_segmentor(
     work_dir: str | Path,
     seed: int = 0,
     info: dict | None = None,
+    inputs: dict | None = None,
+    command: str = "train-segmentor",
 ) -> dict:
     """Train one segmentor from scratch and write its weights-only payload to ``out``.
 
     ``settings``: a training section (``models``, ``voxel_size``, ``max_voxels``, ``max_points``,
     ``schedule``, ``augmentation``, ``mixing``, ``backend``, ``device``).
     ``real`` / ``generated``: scan records (:mod:`.dataset`). ``info`` is stored in
-    the payload (e.g. which subset and domains). Returns a summary dict.
+    the payload (e.g. which subset and domains). ``inputs`` (``{name: path or
+    [paths]}``) are the files the records come from; their content digests and the
+    code hash of ``command`` key the resumable state in ``work_dir``. Returns a summary dict.
     """
     from mmengine.runner import Runner
 
@@ -132,9 +166,9 @@ def train_segmentor(
     spec = model_spec(backbone, settings["models"][backbone], space.num_classes)
     iterations = total_iterations(sched, len(real), len(generated), mixing)
 
-    run_dir = Path(work_dir) / run_hash(settings, backbone, real, generated, seed)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    resume_from = last_checkpoint(run_dir)
+    run_dir = Path(work_dir)
+    provenance = job_provenance(command, trajectory(settings, backbone, real, generated), seed, inputs or {})
+    resume_from = resume_point(run_dir, provenance, iterations, log=lambda m: print(m, flush=True))
     skip = checkpoint_iteration(resume_from) if resume_from else 0
 
     dataset = SegScanDataset(real + generated, space, settings["augmentation"], seed, settings.get("max_points"))
@@ -154,23 +188,15 @@ def train_segmentor(
     optim_wrapper = dict(type="OptimWrapper", optimizer=optimizer)
     if device.type == "cuda" and sched["amp"]:
         optim_wrapper = dict(type="AmpOptimWrapper", dtype="float16", optimizer=optimizer)
-    warmup = min(int(sched["warmup_iters"]), max(iterations - 1, 0))
-    param_scheduler = [dict(type="CosineAnnealingLR", by_epoch=False, begin=warmup, end=iterations,
-                            T_max=iterations - warmup, eta_min=0.0)]
-    if warmup > 0:
-        param_scheduler.insert(0, dict(type="LinearLR", by_epoch=False, start_factor=sched["warmup_start_factor"],
-                                       begin=0, end=warmup))
-
-    meta = {"model": spec, "label_space": space.name, "seed": int(seed)}
+    meta = {"model": spec, "label_space": space.name, "seed": int(seed), "provenance": provenance}
     runner = Runner(
         model=model,
         work_dir=str(run_dir),
         train_dataloader=loader,
         train_cfg=dict(by_epoch=False, max_iters=iterations, val_interval=iterations + 1),
         optim_wrapper=optim_wrapper,
-        param_scheduler=param_scheduler,
         default_hooks=iteration_hooks(sched["log_interval"], sched["checkpoint_interval"], keep_checkpoints=1),
-        custom_hooks=[weights_only_hook(meta)],
+        custom_hooks=[schedule_hook(iterations, sched), *weights_only_hooks(meta)],
         launcher="none",
         env_cfg=dict(cudnn_benchmark=False),
         **resumable_runner_args(resume_from, seed, sched["log_interval"]),
@@ -180,9 +206,10 @@ def train_segmentor(
         f"omnilidar segmentor: {backbone} {spec['width']} depth {spec['depth']} ({params / 1e6:.2f} M parameters, "
         f"backend {net.backend}, {device}), {len(real)} real + {len(generated)} generated scans "
         f"(mixing {mixing['mode']}), {iterations} iterations of batch {sched['batch_size']}"
-        + (f", resuming at iteration {skip}" if resume_from else "")
+        + (f", resuming at iteration {skip}" if resume_from else ", from scratch")
     )
     runner.train()
+    relative_marker(run_dir)
 
     state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
     bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
@@ -190,11 +217,12 @@ def train_segmentor(
         raise FloatingPointError(f"non-finite weights after training ({bad[0]}); lower schedule.lr")
     summary = {"iterations": int(runner.iter), "parameters": int(params), "num_real": len(real),
                "num_generated": len(generated), "mixing": mixing, "backend": net.backend,
-               "device": str(device), "seconds": round(time.time() - started, 1), "work_dir": str(run_dir)}
+               "device": str(device), "seconds": round(time.time() - started, 1), "work_dir": str(run_dir),
+               "resumed_from": skip}
     save_payload({
         "state_dict": state, "model": spec, "label_space": space.name,
         "voxel_size": float(settings["voxel_size"]), "config": settings, "seed": int(seed),
-        "iterations": summary["iterations"],
+        "iterations": summary["iterations"], "provenance": provenance,
         "train": {k: v for k, v in summary.items() if k != "work_dir"} | {"info": info or {}},
     }, out)
     runner.logger.info(f"wrote {out}")
