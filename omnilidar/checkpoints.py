@@ -181,7 +181,7 @@ def _flat(value, prefix: str = "") -> dict:
 def provenance_differences(stored: dict | None, current: dict) -> list[str]:
     """Why a stored provenance does not match the current one (empty when it does)."""
     if not isinstance(stored, dict):
-        return ["the checkpoint records no provenance"]
+        return ["no provenance recorded"]
     why = []
     for key in ("command", "code", "seed"):
         if stored.get(key) != current[key]:

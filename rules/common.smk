@@ -1,5 +1,6 @@
 # Helpers shared by the workflow: validated config, per-stage settings, code hashes, shards.
 import json
+import os
 import sys
 
 from omnilidar.config import validate
@@ -28,6 +29,12 @@ def settings(*keys, drop=()):
     if drop:
         node = {k: v for k, v in node.items() if k not in drop}
     return json.dumps(node, sort_keys=True)
+
+
+def job_work_dir(output):
+    """A job's own folder for resumable state, named after its output (work/<output without suffix>).
+    What is in it is resumed only when its recorded provenance matches the job (see README)."""
+    return "work/" + os.path.splitext(output)[0]
 
 
 def code(command):

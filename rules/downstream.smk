@@ -122,7 +122,7 @@ rule train_supervised:
     params:
         settings=downstream_settings(*TRAINING_KEYS),
         seed=config["seed"],
-        work_dir="work/segmentation",
+        work_dir=lambda w, output: job_work_dir(output[0]),
         code=code("train-segmentor"),
     log:
         f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real.log",
@@ -158,7 +158,7 @@ rule train_gda:
     params:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=config["seed"],
-        work_dir="work/segmentation",
+        work_dir=lambda w, output: job_work_dir(output[0]),
         domains=lambda w: " ".join(gda_domains(w)),
         code=code("train-segmentor"),
     log:
@@ -198,7 +198,7 @@ rule train_gda_curve:
     params:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=config["seed"],
-        work_dir="work/segmentation",
+        work_dir=lambda w, output: job_work_dir(output[0]),
         code=code("train-segmentor"),
     log:
         f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.log",

@@ -19,6 +19,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from omnilidar.checkpoints import job_provenance
     from omnilidar.config import validate
     from omnilidar.generator.sampling import resolve_device, sample_shard
     from omnilidar.generator.text import load_prompt_cache
@@ -30,7 +31,12 @@ def run(args) -> int:
     device = resolve_device(sampling["device"])
     denoiser, payload = load_generator(args.checkpoint, device=device)
     cache = load_prompt_cache(args.prompts)
-    stats = sample_shard(denoiser, payload, cache, args.domain, args.shard, n, sampling, args.seed, args.out)
+    # Scans left by an interrupted job are reused only when they came from this very job.
+    provenance = job_provenance("sample", {"sampling": sampling, "domain": args.domain, "shard": args.shard,
+                                           "scans_per_shard": n}, args.seed,
+                                {"checkpoint": args.checkpoint, "prompts": args.prompts})
+    stats = sample_shard(denoiser, payload, cache, args.domain, args.shard, n, sampling, args.seed, args.out,
+                         provenance=provenance)
     print(f"{args.domain} shard {args.shard}: {stats['generated']} generated, {stats['skipped']} reused, "
           f"{stats['seconds']:.1f} s -> {args.out}")
     return 0

@@ -10,8 +10,10 @@ already on disk. Each scan is written as
     DIR/velodyne/%06d.bin    float32 x, y, z, intensity (SemanticKITTI layout)
 
 named by its global index. Work goes into ``DIR.partial``; scans already there are
-skipped (resume after interruption), every file is written atomically, and only a
-complete shard is renamed to ``DIR``.
+skipped (resume after interruption) when the partial shard's ``PROVENANCE.json``
+matches this job's (same checkpoint and prompt contents, settings, seed and code),
+else it starts fresh; every file is written atomically, and only a complete shard
+is renamed to ``DIR``.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from omnilidar.generator.schedule import CosineLogSNRSchedule
 
 
 TIMING_FILE = "timing.json"
+PROVENANCE_FILE = "PROVENANCE.json"
 
 
 def scan_seed(seed: int, domain: str, index: int) -> int:
@@ -99,6 +102,23 @@ def _save_npz_atomic(path: Path, image: np.ndarray) -> None:
     write_bytes_atomic(path, buf.getvalue())
 
 
+def _check_partial(partial: Path, provenance: dict | None, log) -> None:
+    """Remove a partial shard that another job left (other checkpoint, settings, seed or
+    code); stamp the partial shard with this job's provenance."""
+    from omnilidar.checkpoints import provenance_differences
+
+    stamp = partial / PROVENANCE_FILE
+    if partial.exists():
+        stored = json.loads(stamp.read_text()) if stamp.is_file() else None
+        why = provenance_differences(stored, provenance) if provenance is not None else []
+        if why:
+            log(f"starting fresh: {partial} holds another job's scans: " + "; ".join(why))
+            shutil.rmtree(partial)
+    if provenance is not None and not stamp.is_file():
+        partial.mkdir(parents=True, exist_ok=True)
+        stamp.write_text(json.dumps(provenance, indent=1, sort_keys=True))
+
+
 def sample_shard(
     denoiser: torch.nn.Module,
     payload: dict,
@@ -110,8 +130,12 @@ def sample_shard(
     seed: int,
     out_dir: str | Path,
     log=print,
+    provenance: dict | None = None,
 ) -> dict:
-    """Generate one shard into ``out_dir`` (via ``out_dir.partial``); return timing stats."""
+    """Generate one shard into ``out_dir`` (via ``out_dir.partial``); return timing stats.
+
+    ``provenance`` (:func:`omnilidar.checkpoints.job_provenance`) decides whether scans
+    an interrupted run left in ``out_dir.partial`` are this job's to reuse."""
     from omnilidar.data.range_image import RangeImageSpec, decode, unproject
     from omnilidar.io.semantickitti import write_points
     from omnilidar.generator.unet import range_image_spec
@@ -131,6 +155,7 @@ def sample_shard(
         log(f"{out_dir} is complete; nothing to do")
         return {"generated": 0, "skipped": scans_per_shard, "seconds": 0.0}
     partial = out_dir.with_name(out_dir.name + ".partial")
+    _check_partial(partial, provenance, log)
     (partial / "range").mkdir(parents=True, exist_ok=True)
     (partial / "velodyne").mkdir(parents=True, exist_ok=True)
 

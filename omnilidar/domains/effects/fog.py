@@ -85,6 +85,7 @@ from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
 from omnilidar.errors import InputError
 from omnilidar.io.atomic import atomic_path
+from omnilidar.provenance import code_hash
 
 NEEDS_GROUND = False
 
@@ -281,7 +282,9 @@ def _build_table(alpha: float, r0_step: float, quad_nodes: int) -> SoftReturnTab
 
 
 def _cache_file(cache_dir: Path, alpha: float, r0_step: float, quad_nodes: int) -> Path:
-    physics = repr((_TABLE_VERSION, TAU_H, OVERLAP_START, OVERLAP_FULL, TABLE_RANGE, alpha, r0_step, quad_nodes))
+    # Keyed by the code that builds the table too, so an edited module never reads an old table.
+    physics = repr((_TABLE_VERSION, code_hash(__name__), TAU_H, OVERLAP_START, OVERLAP_FULL, TABLE_RANGE, alpha,
+                    r0_step, quad_nodes))
     digest = hashlib.sha256(physics.encode()).hexdigest()[:16]
     return cache_dir / f"fog_soft_table_alpha{alpha:g}_{digest}.npz"
 
