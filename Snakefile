@@ -17,6 +17,7 @@ include: "rules/downstream.smk"
 
 
 onsuccess:
+    record_versions()
     # Tell the user where the results are (the JSON files and their figures).
     import glob
 

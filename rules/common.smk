@@ -5,7 +5,8 @@ import sys
 
 from omnilidar.config import validate
 from omnilidar.errors import InputError
-from omnilidar.provenance import command_code_hash
+from omnilidar.manifest import listing_digest
+from omnilidar.provenance import command_code_hash, package_versions
 
 try:
     # Fills every default from workflow/schemas/ and rejects unknown keys.
@@ -37,15 +38,62 @@ def job_work_dir(output):
     return "work/" + os.path.splitext(output)[0]
 
 
-def code(command):
-    """Content hash of the package code an ``omnilidar <command>`` runs."""
-    return command_code_hash(command)
+# Package versions (torch, numpy, spconv, mamba, text encoder, ...): recorded in every result
+# and checkpoint; they rerun stages only where rerun_on_version_change asks for it.
+VERSIONS = package_versions()
+VERSIONS_RECORD = ".snakemake/omnilidar_versions.json"
+
+
+def _versions_rerun(command):
+    wanted = config["rerun_on_version_change"]
+    return wanted is True or (isinstance(wanted, list) and command in wanted)
+
+
+def code(command, exclude=()):
+    """Content hash of the package code an ``omnilidar <command>`` runs (with the package
+    versions appended where rerun_on_version_change asks for them)."""
+    digest = command_code_hash(command, exclude=exclude)
+    if _versions_rerun(command):
+        digest += " " + json.dumps(VERSIONS, sort_keys=True)
+    return digest
+
+
+def _report_version_changes():
+    """Say which package versions differ from the last successful run of this workflow."""
+    try:
+        with open(VERSIONS_RECORD) as fh:
+            before = json.load(fh)
+    except (OSError, ValueError):
+        return
+    changed = {k: (before.get(k), v) for k, v in VERSIONS.items() if before.get(k) != v}
+    if changed:
+        what = ", ".join(f"{k} {a} -> {b}" for k, (a, b) in sorted(changed.items()))
+        wanted = config["rerun_on_version_change"]
+        effect = ("every stage reruns" if wanted is True else
+                  f"stages {', '.join(wanted)} rerun" if wanted else
+                  "outputs are kept (rerun_on_version_change: true, or a list of stages, reruns them)")
+        print(f"Package versions changed since the last run: {what}; {effect}.", file=sys.stderr)
+
+
+_report_version_changes()
+
+
+def record_versions():
+    """Called on success: the versions the outputs now on disk were made with."""
+    os.makedirs(os.path.dirname(VERSIONS_RECORD), exist_ok=True)
+    with open(VERSIONS_RECORD, "w") as fh:
+        json.dump(VERSIONS, fh, indent=1, sort_keys=True)
 
 
 def dataset_root(name):
     """The dataset's root: the configured real root, or where the synthetic world writes it."""
     root = config["datasets"][name]["root"]
     return root if root is not None else f"{DATA}/synthetic/{name}"
+
+
+def root_listing(root):
+    """Listing digest of a real dataset root (omnilidar.manifest.listing_digest), "missing" when absent."""
+    return listing_digest(root)["digest"] if os.path.isdir(root) else "missing"
 
 
 def is_synthetic(name):
@@ -105,7 +153,7 @@ def domain_code(name):
     """Code hash of build-domain without the effect modules this domain does not use."""
     used = {effect["name"] for effect in config["domains"][name]["effects"]}
     unused = tuple(f"omnilidar.domains.effects.{m}" for m in EFFECT_MODULES if m not in used)
-    return command_code_hash("build-domain", exclude=unused)
+    return code("build-domain", exclude=unused)
 
 
 def _check_image_geometry():

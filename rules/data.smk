@@ -119,6 +119,9 @@ rule index_dataset:
         root=lambda w: dataset_root(w.dataset),
         source=lambda w: "synthetic" if is_synthetic(w.dataset) else "real",
         settings=lambda w: settings("datasets", w.dataset),
+        # A real root has no declared inputs: its listing (names, sizes, modification times)
+        # is a param, so adding, removing or replacing scans or labels reindexes it.
+        listing=lambda w: "" if is_synthetic(w.dataset) else root_listing(dataset_root(w.dataset)),
         code=code("index-dataset"),
     log:
         f"logs/index/{{dataset}}.log",
