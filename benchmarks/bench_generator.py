@@ -18,7 +18,7 @@ import time
 import torch
 
 from omnilidar.config import section_defaults
-from omnilidar.generator.sampling import generate
+from omnilidar.generator.diffusion import generate
 from omnilidar.generator.training import make_diffusion_model
 from omnilidar.generator.unet import build_denoiser, count_parameters
 

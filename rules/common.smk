@@ -35,7 +35,7 @@ def settings(*keys, drop=()):
 def job_work_dir(output):
     """A job's own folder for resumable state, named after its output (work/<output without suffix>).
     What is in it is resumed only when its recorded provenance matches the job (see README)."""
-    return "work/" + os.path.splitext(output)[0]
+    return f"work/{os.path.splitext(output)[0]}"
 
 
 # Package versions (torch, numpy, spconv, mamba, text encoder, ...): recorded in every result
@@ -54,7 +54,7 @@ def code(command, exclude=()):
     versions appended where rerun_on_version_change asks for them)."""
     digest = command_code_hash(command, exclude=exclude)
     if _versions_rerun(command):
-        digest += " " + json.dumps(VERSIONS, sort_keys=True)
+        digest = f"{digest} {json.dumps(VERSIONS, sort_keys=True)}"
     return digest
 
 

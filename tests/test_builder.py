@@ -202,7 +202,7 @@ def _files(shard_dirs):
     out = {}
     for d in shard_dirs:
         for p in sorted(Path(d).rglob("*")):
-            if p.is_file() and p.name != "sidecar.json":
+            if p.is_file() and p.name not in ("sidecar.json", "MANIFEST.sha256"):  # per-shard metadata
                 out[str(p.relative_to(d))] = p.read_bytes()
     return out
 

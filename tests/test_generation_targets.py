@@ -34,7 +34,7 @@ def fixture_dir(tmp_path_factory) -> Path:
     an untrained generator checkpoint, a self-trained-format FRID extractor, a KITTI-360
     style index and an effects_tradeoff.json."""
     from omnilidar.generator.text import CACHE_FORMAT
-    from omnilidar.generator.training import CHECKPOINT_FORMAT
+    from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT
     from omnilidar.generator.unet import build_denoiser, range_image_spec
 
     root = tmp_path_factory.mktemp("gen_targets")

@@ -9,9 +9,10 @@ import pytest
 import torch
 
 from omnilidar.cli import main
-from omnilidar.generator.sampling import generate, sample_shard, scan_seed
+from omnilidar.generator.diffusion import generate, scan_seed
+from omnilidar.generator.sampling import sample_shard
 from omnilidar.generator.text import build_prompt_cache
-from omnilidar.generator.training import CHECKPOINT_FORMAT, load_generator
+from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
 from omnilidar.generator.unet import build_denoiser
 from omnilidar.io.semantickitti import read_points
 from test_generator_fixtures import one_torch_thread, tiny_settings  # noqa: F401

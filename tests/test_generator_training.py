@@ -13,7 +13,8 @@ import torch
 
 from omnilidar.generator.text import build_prompt_cache
 from omnilidar.checkpoints import from_plain, to_plain
-from omnilidar.generator.training import load_generator, train_generator
+from omnilidar.generator.checkpoint import load_generator
+from omnilidar.generator.training import train_generator
 from test_generator_fixtures import make_domains, one_torch_thread, tiny_settings  # noqa: F401
 
 

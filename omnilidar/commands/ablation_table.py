@@ -33,8 +33,8 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.generator.text import load_prompt_cache
-    from omnilidar.generator.sampling import resolve_device
-    from omnilidar.generator.training import load_generator
+    from omnilidar.devices import resolve_device
+    from omnilidar.generator.checkpoint import load_generator
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
     from omnilidar.metrics.generation import compare, real_domain_images, sample_images, set_features
@@ -49,7 +49,7 @@ def run(args) -> int:
     ckpts = parse_pairs(args.checkpoint, "--checkpoint")
     presets = [p for p in settings["ablation"]["presets"] if p in ckpts]
     cache = load_prompt_cache(args.prompts)
-    device = resolve_device(settings["device"])
+    device = resolve_device(settings["device"], "evaluation.device")
     models = {p: load_generator(ckpts[p], device) for p in presets}
     spec = range_image_spec(next(iter(models.values()))[1]["config"])
     domains = next(iter(models.values()))[1]["domains"]

@@ -28,8 +28,8 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.generator.text import load_prompt_cache
-    from omnilidar.generator.sampling import resolve_device
-    from omnilidar.generator.training import load_generator
+    from omnilidar.devices import resolve_device
+    from omnilidar.generator.checkpoint import load_generator
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
     from omnilidar.metrics.generation import compare, real_domain_images, sample_images, set_features
@@ -43,7 +43,7 @@ def run(args) -> int:
     extractors = load_extractors(parse_pairs(args.weights, "--weights"), metrics)
     baselines = parse_pairs(args.baseline, "--baseline")
     cache = load_prompt_cache(args.prompts)
-    device = resolve_device(settings["device"])
+    device = resolve_device(settings["device"], "evaluation.device")
     full, payload = load_generator(args.full, device)
     spec = range_image_spec(payload["config"])
     timings, scores, shown = {}, {}, {"Real": {}, FULL: {}, BASELINE: {}}

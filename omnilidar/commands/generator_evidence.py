@@ -37,8 +37,8 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.generator.text import load_prompt_cache
-    from omnilidar.generator.sampling import resolve_device
-    from omnilidar.generator.training import load_generator
+    from omnilidar.devices import resolve_device
+    from omnilidar.generator.checkpoint import load_generator
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.generation import across_domain_correlation, compare, domain_statistics, real_domain_images, sample_images, set_features
     from omnilidar.provenance import envelope
@@ -47,7 +47,7 @@ def run(args) -> int:
     settings = validate(dict(args.settings), "evaluation.schema.yaml", source="--settings")
     ev = settings["evidence"]
     n, bs = ev["scans"], settings["batch_size"]
-    device = resolve_device(settings["device"])
+    device = resolve_device(settings["device"], "evaluation.device")
     trained, payload = load_generator(args.checkpoint, device)
     untrained = untrained_like(payload, int(payload.get("seed", args.seed))).to(device)
     spec = range_image_spec(payload["config"])

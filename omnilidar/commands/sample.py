@@ -21,14 +21,15 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from omnilidar.checkpoints import job_provenance
     from omnilidar.config import validate
-    from omnilidar.generator.sampling import resolve_device, sample_shard
+    from omnilidar.devices import resolve_device
+    from omnilidar.generator.sampling import sample_shard
     from omnilidar.generator.text import load_prompt_cache
-    from omnilidar.generator.training import load_generator
+    from omnilidar.generator.checkpoint import load_generator
 
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     sampling = settings["sampling"]
     n = args.scans_per_shard or sampling["scans_per_shard"]
-    device = resolve_device(sampling["device"])
+    device = resolve_device(sampling["device"], "generator.sampling.device")
     denoiser, payload = load_generator(args.checkpoint, device=device)
     cache = load_prompt_cache(args.prompts)
     # Scans left by an interrupted job are reused only when they came from this very job.

@@ -66,8 +66,8 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.generator.text import load_prompt_cache
-    from omnilidar.generator.sampling import resolve_device
-    from omnilidar.generator.training import load_generator
+    from omnilidar.devices import resolve_device
+    from omnilidar.generator.checkpoint import load_generator
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors import METRIC_NAMES
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
@@ -82,7 +82,7 @@ def run(args) -> int:
     feat = cfg["feature_metric"]
     weights = {k: v for k, v in parse_pairs(args.weights, "--weights").items() if METRIC_NAMES.get(k) == feat}
     extractors = load_extractors(weights, [feat])
-    den, payload = load_generator(args.checkpoint, resolve_device(settings["device"]))
+    den, payload = load_generator(args.checkpoint, resolve_device(settings["device"], "evaluation.device"))
     spec = range_image_spec(payload["config"])
     cache = load_prompt_cache(args.prompts)
     domains = cfg["domains"] or list(payload["domains"])

@@ -23,7 +23,6 @@ import json
 import os
 import shutil
 import time
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -31,67 +30,12 @@ import torch
 
 from omnilidar.errors import InputError
 from omnilidar.manifest import write_manifest
-from omnilidar.generator.data import rng_for
-from omnilidar.generator.samplers import make_scheduler
+from omnilidar.generator.diffusion import generate, scan_seed
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 
 
 TIMING_FILE = "timing.json"
 PROVENANCE_FILE = "PROVENANCE.json"
-
-
-def scan_seed(seed: int, domain: str, index: int) -> int:
-    """The per-scan seed of global scan ``index`` of ``domain``."""
-    return int(rng_for(seed, zlib.crc32(domain.encode()), index).integers(2**63 - 1))
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError(None, f"sampling.device {name}: CUDA is not available")
-    return torch.device(name)
-
-
-@torch.no_grad()
-def generate(
-    denoiser: torch.nn.Module,
-    domain_index: int,
-    tokens: torch.Tensor,
-    mask: torch.Tensor,
-    seeds: list[int],
-    shape: tuple[int, int],
-    sampler: str = "dpmpp_2m",
-    steps: int = 20,
-    schedule: CosineLogSNRSchedule | None = None,
-    ddim_eta: float = 0.0,
-    autocast_bf16: bool = False,
-) -> torch.Tensor:
-    """Sample one batch: len(seeds) range images (B, 2, H, W) in [-1, 1], float32 on CPU.
-
-    ``tokens`` (T, D) and ``mask`` (T,) are the domain's (first) prompt.
-    """
-    device = next(denoiser.parameters()).device
-    kwargs = {"eta": ddim_eta} if sampler == "ddim" else {}
-    sched = make_scheduler(sampler, schedule or CosineLogSNRSchedule(), **kwargs)
-    sched.set_timesteps(steps)
-    gens = []
-    for s in seeds:
-        g = torch.Generator(device=device)
-        g.manual_seed(s)
-        gens.append(g)
-    b = len(seeds)
-    x = torch.stack([torch.randn((2, *shape), generator=g, device=device) for g in gens])
-    dom = torch.full((b,), int(domain_index), dtype=torch.long, device=device)
-    tok = tokens.to(device).float().expand(b, -1, -1)
-    msk = mask.to(device).bool().expand(b, -1)
-    for t in sched.timesteps:
-        logsnr = sched.logsnr_at(t).to(device).expand(b)
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast_bf16):
-            eps = denoiser(x, logsnr, dom, tok, msk)
-        eps = torch.nan_to_num(eps.float(), nan=0.0, posinf=0.0, neginf=0.0)
-        x = sched.step(eps, t, x, generator=gens).prev_sample
-    return x.clamp(-1.0, 1.0).float().cpu()
 
 
 def _save_npz_atomic(path: Path, image: np.ndarray) -> None:

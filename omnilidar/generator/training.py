@@ -27,7 +27,6 @@ Training noise (t and epsilon) comes from a generator seeded by
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -35,15 +34,15 @@ from pathlib import Path
 
 import torch
 
-from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker, resumable_runner_args,
-                                   resume_point, weights_only_hooks)
-from omnilidar.errors import InputError
+from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker,
+                                   resumable_runner_args, resume_point, weights_only_hooks)
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
-from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight
+from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT
+from omnilidar.generator.diffusion import epsilon_loss
+from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
 
-CHECKPOINT_FORMAT = "omnilidar-generator/1"
 
 
 # Keys that do not change what one training step computes: a run whose config differs
@@ -61,20 +60,13 @@ def trajectory_settings(settings: dict) -> dict:
 # --------------------------------------------------------------------------- model
 
 
-def _mm():
-    """mmengine pieces, imported lazily (the CLI must stay light)."""
+def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, prompt_mask: torch.Tensor, seed: int):
+    """The mmengine adapter: ``loss`` mode is :func:`omnilidar.generator.diffusion.epsilon_loss`
+    with noise drawn from a generator keyed by (seed, rank, iteration)."""
+    from mmengine.dist import get_rank
     from mmengine.model import BaseModel
 
-    return BaseModel
-
-
-def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, prompt_mask: torch.Tensor, seed: int):
-    """Wrap a denoiser into an mmengine model whose ``loss`` mode is the diffusion objective."""
-    BaseModel = _mm()
-
     class DiffusionModel(BaseModel):
-        """Epsilon-prediction loss with min-SNR-gamma weighting at t ~ U(0, 1)."""
-
         def __init__(self):
             super().__init__()
             self.denoiser = denoiser
@@ -89,19 +81,10 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
         def forward(self, image=None, domain=None, prompt=None, mode: str = "loss"):
             if mode != "loss":
                 raise ValueError(f"DiffusionModel supports mode='loss' only, got {mode!r}")
-            from mmengine.dist import get_rank
-
-            b = image.shape[0]
             gen = torch.Generator(device=image.device)
             gen.manual_seed(int(rng_for(self.seed, get_rank(), self.iteration).integers(2**63 - 1)))
-            t = torch.rand(b, generator=gen, device=image.device, dtype=torch.float32)
-            eps = torch.randn(image.shape, generator=gen, device=image.device, dtype=torch.float32)
-            logsnr = self.schedule.logsnr(t)
-            alpha, sigma = alpha_sigma(logsnr)
-            x_t = alpha[:, None, None, None] * image.float() + sigma[:, None, None, None] * eps
-            pred = self.denoiser(x_t, logsnr, domain, self.prompt_tokens[prompt], self.prompt_mask[prompt])
-            per_scan = (pred.float() - eps).square().mean(dim=(1, 2, 3))
-            loss = (min_snr_weight(logsnr, self.gamma) * per_scan).mean()
+            loss = epsilon_loss(self.denoiser, image, domain, self.prompt_tokens[prompt], self.prompt_mask[prompt],
+                                self.schedule, self.gamma, gen)
             return {"loss": loss}
 
     return DiffusionModel()
@@ -264,28 +247,3 @@ def train_generator(
             torch.save(payload, tmp)
     logging.getLogger("mmengine").info(f"wrote {out}")
     return summary
-
-
-def load_generator(path: str | Path, device: str | torch.device = "cpu", backend: str | None = None):
-    """Load a checkpoint written by :func:`train_generator` (weights-only); return (denoiser, payload).
-
-    ``backend`` overrides the Mamba backend (the state_dict is the same for both).
-    """
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "generator checkpoint not found")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise InputError(path, f"not a readable generator checkpoint: {err}") from None
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise InputError(path, f"not an omnilidar generator checkpoint ({CHECKPOINT_FORMAT})")
-    settings = json.loads(json.dumps(payload["config"]))
-    if backend is not None:
-        settings["model"]["mamba"]["backend"] = backend
-    denoiser = build_denoiser(settings, payload["text"]["dim"], len(payload["domains"]))
-    try:
-        denoiser.load_state_dict(payload["state_dict"], strict=True)
-    except RuntimeError as err:
-        raise InputError(path, f"weights do not match the stored config: {err}") from None
-    return denoiser.to(device).eval(), payload

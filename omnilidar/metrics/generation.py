@@ -145,7 +145,7 @@ def sample_images(denoiser, payload: dict, prompt_cache: dict, domain: str, coun
     and the wall-clock seconds per scan."""
     import torch
 
-    from omnilidar.generator.sampling import generate, scan_seed
+    from omnilidar.generator.diffusion import generate, scan_seed
     from omnilidar.generator.schedule import CosineLogSNRSchedule
     from omnilidar.generator.unet import range_image_spec
 

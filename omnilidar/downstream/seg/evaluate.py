@@ -19,7 +19,7 @@ from omnilidar.downstream.seg.checkpoints import load_payload
 from omnilidar.downstream.seg.dataset import SegCollate, SegScanDataset
 from omnilidar.downstream.seg.label_spaces import LabelSpace, get_label_space
 from omnilidar.downstream.seg.models import restore
-from omnilidar.downstream.seg.training import resolve_device
+from omnilidar.devices import resolve_device
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
 from omnilidar.metrics.segmentation import ConfusionMatrix

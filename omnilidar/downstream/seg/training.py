@@ -36,6 +36,7 @@ import torch
 
 from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker,
                                    resumable_runner_args, resume_point, weights_only_hooks)
+from omnilidar.devices import resolve_device
 from omnilidar.downstream.seg.checkpoints import save_payload
 from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, epoch_length
 from omnilidar.downstream.seg.label_spaces import LabelSpace
@@ -45,14 +46,6 @@ from omnilidar.errors import InputError
 
 # Keys that do not change what one step computes or only extend the run: changing them resumes it.
 _RESUMABLE = ("log_interval", "checkpoint_interval", "num_workers", "iterations", "epochs")
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise InputError(None, f"device {name}: CUDA is not available")
-    return torch.device(name)
 
 
 def total_iterations(schedule: dict, num_real: int, num_generated: int, mixing: dict) -> int:
@@ -162,7 +155,7 @@ def train_segmentor(
         raise InputError(None, "no training scans")
     sched = settings["schedule"]
     mixing = settings.get("mixing", {"mode": "concat", "generated_share": 0.5})
-    device = resolve_device(settings["device"])
+    device = resolve_device(settings["device"], "downstream device")
     spec = model_spec(backbone, settings["models"][backbone], space.num_classes)
     iterations = total_iterations(sched, len(real), len(generated), mixing)
 

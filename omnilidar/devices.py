@@ -1,0 +1,17 @@
+"""Which torch device a stage runs on."""
+
+from __future__ import annotations
+
+import torch
+
+from omnilidar.errors import InputError
+
+
+def resolve_device(name: str, setting: str = "device") -> torch.device:
+    """``auto`` (CUDA when available), ``cpu`` or ``cuda[:N]``; a CUDA setting on a machine
+    without CUDA is one clear error naming the ``setting``."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise InputError(None, f"{setting} {name}: CUDA is not available on this machine")
+    return torch.device(name)
