@@ -29,6 +29,7 @@ from pathlib import Path
 import torch
 
 from omnilidar.errors import InputError
+from omnilidar.manifest import digest
 
 CACHE_FORMAT = "omnilidar-prompts/1"
 
@@ -75,6 +76,8 @@ class TextEncoder:
             raise InputError(None, f"unknown text encoder {kind!r} (minilm, clip)")
         self.model.eval().requires_grad_(False).to(self.device)
         self.dim = int(self.model.config.hidden_size)
+        # Content digest of the encoder's files when they are local (recorded with the prompts).
+        self.files_digest = digest(Path(self.model_name)) if Path(self.model_name).is_dir() else None
 
     @torch.no_grad()
     def encode(self, prompts: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -119,6 +122,7 @@ def build_prompt_cache(pools: dict[str, list[str]], encoder: TextEncoder) -> dic
         "format": CACHE_FORMAT,
         "encoder": encoder.kind,
         "model": encoder.model_name,
+        "model_files_digest": getattr(encoder, "files_digest", None),
         "dim": encoder.dim,
         "max_tokens": t,
         "domains": domains,

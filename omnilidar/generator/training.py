@@ -238,7 +238,8 @@ def train_generator(
             # Per-domain image geometry (sensor field of view, pitch, range limits)
             # from the domains index, for back-projecting samples.
             "domain_range_images": {n: domains[n]["range_image"] for n in names if "range_image" in domains[n]},
-            "text": {"encoder": cache["encoder"], "model": cache["model"], "dim": int(cache["dim"])},
+            "text": {"encoder": cache["encoder"], "model": cache["model"], "dim": int(cache["dim"]),
+                     "model_files_digest": cache.get("model_files_digest")},
             "seed": int(seed),
             "provenance": provenance,
             **{k: v for k, v in summary.items() if k != "work_dir"},
