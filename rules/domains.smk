@@ -5,8 +5,8 @@ DOMAINS = f"{DATA}/domains"
 CORRUPTED = f"{DATA}/semantickitti_c"
 
 
-# Every shard directory (one build_domain job each), every corrupted set, and the real
-# scans of the two reports; plain values, not functions (helpers live in common.smk).
+# Every shard directory (one build_domain job each), every corrupted set, and the scans of
+# the two reports; plain values, not functions (helpers live in common.smk).
 DOMAIN_SHARD_DIRS = [
     f"{DOMAINS}/{name}/shard_{k}" for name in DOMAIN_NAMES for k in range(config["domains"][name]["num_shards"])
 ]
@@ -17,6 +17,10 @@ CORRUPTED_SET_DIRS = expand(
 )
 FIDELITY_SCANS = config["domains"]["fidelity"]["scans"]
 TRADEOFF_SCANS = config["domains"]["tradeoff"]["scans"] or FIDELITY_SCANS[:1]
+# Without listed scans the reports run on the first scans of the SemanticKITTI index (the
+# synthetic world's full HDL-64E sweeps in the embedded default), a real input of their jobs.
+FIDELITY_INDEX = [] if FIDELITY_SCANS else f"{DATA}/index/semantickitti.json"
+TRADEOFF_INDEX = [] if TRADEOFF_SCANS else f"{DATA}/index/semantickitti.json"
 
 
 rule build_domain:
@@ -99,10 +103,11 @@ rule build_corrupted:
 
 
 rule domain_fidelity:
-    """Per effect and severity on real scans: points changed, lost and added, weather-return
+    """Per effect and severity on KITTI-format scans: points changed, lost and added, weather-return
     distributions, intensity shift and time per scan, beside the anchors' numbers."""
     input:
-        FIDELITY_SCANS,
+        scans=FIDELITY_SCANS,
+        index=FIDELITY_INDEX,
     output:
         json="results/domain_fidelity.json",
         figure=report("results/figures/domain_fidelity.png", caption="../workflow/report/domain_fidelity.rst", category="Domains"),
@@ -110,6 +115,7 @@ rule domain_fidelity:
         settings=settings("domains"),
         seed=config["seed"],
         code=code("domain-fidelity"),
+        index=lambda w, input: f"--index {input.index}" if input.index else "",
     log:
         "logs/domain_fidelity.log",
     benchmark:
@@ -121,13 +127,14 @@ rule domain_fidelity:
         runtime=30,
     shell:
         "omnilidar domain-fidelity --settings {params.settings:q} --seed {params.seed} "
-        "--out {output.json} --figure {output.figure} {input} > {log} 2>&1"
+        "--out {output.json} --figure {output.figure} {params.index} {input.scans} > {log} 2>&1"
 
 
 rule effects_tradeoff:
     """Error against time per scan for every numerical knob of every effect, defaults marked."""
     input:
-        TRADEOFF_SCANS,
+        scans=TRADEOFF_SCANS,
+        index=TRADEOFF_INDEX,
     output:
         json="results/effects_tradeoff.json",
         figure=report("results/figures/effects_tradeoff.png", caption="../workflow/report/effects_tradeoff.rst", category="Domains"),
@@ -135,6 +142,7 @@ rule effects_tradeoff:
         settings=settings("domains"),
         seed=config["seed"],
         code=code("effects-tradeoff"),
+        index=lambda w, input: f"--index {input.index}" if input.index else "",
     log:
         "logs/effects_tradeoff.log",
     benchmark:
@@ -146,7 +154,7 @@ rule effects_tradeoff:
         runtime=60,
     shell:
         "omnilidar effects-tradeoff --settings {params.settings:q} --seed {params.seed} "
-        "--out {output.json} --figure {output.figure} {input} > {log} 2>&1"
+        "--out {output.json} --figure {output.figure} {params.index} {input.scans} > {log} 2>&1"
 
 
 rule domains:

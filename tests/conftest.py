@@ -6,8 +6,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-REAL = ROOT.parent / "shared" / "data" / "real"
+from real_samples import ROOT, require_real
 
 
 @pytest.fixture(scope="session")
@@ -17,9 +16,8 @@ def project_root() -> Path:
 
 @pytest.fixture(scope="session")
 def real_data() -> Path:
-    if not REAL.is_dir():
-        pytest.fail(f"real LiDAR samples not found at {REAL} (see README: Tests)")
-    return REAL
+    """The real LiDAR samples (OMNILIDAR_REAL_DATA); skips the test when they are absent."""
+    return require_real()
 
 
 @pytest.fixture(autouse=True)

@@ -86,3 +86,43 @@ def test_tiny_real_run_of_one_domain_shard(workdir, tmp_path):
     assert log.startswith("$ omnilidar build-domain fog")
     assert (workdir / "benchmarks" / "out" / "domains" / "fog_0.tsv").is_file()
     assert planned_jobs(workdir, target, "--configfile", str(cfg)) == {}  # nothing left to do
+
+
+def test_domain_reports_run_on_synthetic_sweeps_unless_scans_are_listed(workdir, tmp_path):
+    """Embedded default: the fidelity and trade-off reports read the SemanticKITTI index (the
+    synthetic world's sweeps), a declared input; listed scan files replace it."""
+    reports = ("results/domain_fidelity.json", "results/effects_tradeoff.json")
+    jobs = planned_jobs(workdir, *reports)
+    assert jobs["domain_fidelity"] == 1 and jobs["effects_tradeoff"] == 1
+    assert jobs["index_dataset"] == 1 and jobs["synthesize_semantickitti"] >= 1
+    scans = []
+    for i in range(2):
+        scans.append(tmp_path / f"{i:06d}.bin")
+        semantickitti.write_points(scans[-1], np.zeros((4, 4), np.float32))
+    cfg = tmp_path / "listed.yaml"
+    cfg.write_text(yaml.safe_dump({"domains": {"fidelity": {"scans": [str(p) for p in scans]}}}))
+    jobs = planned_jobs(workdir, *reports, "--configfile", "config/config.yaml", str(cfg))
+    assert jobs == {"domain_fidelity": 1, "effects_tradeoff": 1}
+
+
+def test_domain_fidelity_reads_the_first_scans_of_the_index(tmp_path):
+    from omnilidar.cli import main
+
+    root = tmp_path / "skitti"
+    seq = root / "sequences" / "00"
+    (seq / "velodyne").mkdir(parents=True)
+    (seq / "labels").mkdir()
+    for i in range(3):
+        scan = make_scene(PRESETS["kitti_hdl64e"], np.random.default_rng(40 + i), azimuth_steps=256)
+        semantickitti.write_scan(scan, seq / "velodyne" / f"{i:06d}.bin", seq / "labels" / f"{i:06d}.label")
+    index = tmp_path / "semantickitti.json"
+    assert main(["index-dataset", "semantickitti", "--root", str(root), "--source", "synthetic",
+                 "--out", str(index)]) == 0
+    settings = {"fidelity": {"effects": ["beam_reduction"], "seeds": [0], "max_scans": 2}}
+    out = tmp_path / "fidelity.json"
+    rc = main(["domain-fidelity", "--settings", json.dumps(settings), "--seed", "0", "--out", str(out),
+               "--figure", str(tmp_path / "fidelity.png"), "--index", str(index)])
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    assert doc["data_source"] == "synthetic"
+    assert [p.rsplit("/", 1)[-1] for p in doc["scans"]] == ["000000.bin", "000001.bin"]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,12 +16,13 @@ from omnilidar.domains.effects import fog
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
 from omnilidar.errors import InputError
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import REAL, needs_real, require_real
 KITTI = PRESETS["kitti_hdl64e"]
 NUSC = PRESETS["nuscenes_hdl32e"]
 
 
 def _kitti(name: str = "000001") -> np.ndarray:
+    require_real()
     return np.fromfile(REAL / "kitti_object" / "velodyne" / f"{name}.bin", np.float32).reshape(-1, 4)
 
 
@@ -38,6 +38,14 @@ def kitti_scan() -> Scan:
         ring=(np.arange(n) % 64).astype(np.int16),
         boxes=boxes,
     )
+
+
+def _few_points() -> np.ndarray:
+    """Ten returns at 5-30 m (input validation needs no real scan)."""
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(10, 3)) * [1, 1, 0.05]
+    xyz *= (rng.uniform(5, 30, 10) / np.linalg.norm(xyz, axis=1))[:, None]
+    return np.column_stack([xyz, rng.uniform(0, 1, 10)]).astype(np.float32)
 
 
 def _run(scan, alpha, beta, seed=0, jitter=1.0, sensor=KITTI, **kw):
@@ -214,6 +222,7 @@ def test_does_not_mutate_input(kitti_scan):
     assert np.array_equal(kitti_scan.points, before[0]) and np.array_equal(kitti_scan.semantic, before[1])
 
 
+@needs_real
 def test_nuscenes_scale_stays_in_range():
     raw = np.fromfile(next((REAL / "nuscenes").glob("*.bin")), np.float32).reshape(-1, 5)[:, :4]
     scan = Scan(raw, intensity_scale=255.0)
@@ -304,19 +313,19 @@ def test_draw_params():
 ])
 def test_bad_params(params):
     with pytest.raises(InputError):
-        fog.apply(Scan(_kitti()[:10]), params, KITTI, np.random.default_rng(0))
+        fog.apply(Scan(_few_points()), params, KITTI, np.random.default_rng(0))
 
 
 def test_bad_inputs():
     with pytest.raises(InputError):
         fog.draw_params("apocalyptic", np.random.default_rng(0))
     with pytest.raises(InputError):
-        fog.apply(Scan(_kitti()[:10]), {"alpha": 0.1, "beta": 0.1}, KITTI, np.random.default_rng(0),
+        fog.apply(Scan(_few_points()), {"alpha": 0.1, "beta": 0.1}, KITTI, np.random.default_rng(0),
                   fidelity={"quad_nodes": 0})
     with pytest.raises(InputError, match="fidelity"):
-        fog.apply(Scan(_kitti()[:10]), {"alpha": 0.1, "beta": 0.1}, KITTI, np.random.default_rng(0),
+        fog.apply(Scan(_few_points()), {"alpha": 0.1, "beta": 0.1}, KITTI, np.random.default_rng(0),
                   fidelity={"steps": 3})
-    bad = _kitti()[:10].copy()
+    bad = _few_points().copy()
     bad[3, 1] = np.nan
     with pytest.raises(InputError, match="NaN"):
         fog.apply(Scan(bad), {"alpha": 0.1, "beta": 0.1}, KITTI, np.random.default_rng(0))

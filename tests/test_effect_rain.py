@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,15 +15,13 @@ from omnilidar.domains.effects._mie import mie_efficiencies
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
 from omnilidar.errors import InputError
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import require_real
 KITTI = PRESETS["kitti_hdl64e"]
 NUSC = PRESETS["nuscenes_hdl32e"]
 
 
 def _kitti_scan(name: str = "000001") -> Scan:
-    path = REAL / "kitti_object" / "velodyne" / f"{name}.bin"
-    if not path.exists():
-        pytest.skip(f"real scan {path} not available")
+    path = require_real() / "kitti_object" / "velodyne" / f"{name}.bin"
     pts = np.fromfile(path, np.float32).reshape(-1, 4)
     n = len(pts)
     sem = np.full(n, 40, np.uint16)

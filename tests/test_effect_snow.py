@@ -3,7 +3,6 @@ effect contract (identity, untouched beams bit for bit, determinism, stability).
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,16 +15,14 @@ from omnilidar.domains.effects import snow
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
 from omnilidar.errors import InputError
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import require_real
 KITTI = PRESETS["kitti_hdl64e"]
 NUSC = PRESETS["nuscenes_hdl32e"]
 L_PULSE = snow.SPEED_OF_LIGHT * snow.PULSE_HALF_POWER_WIDTH
 
 
 def _kitti_scan(name: str = "000001") -> Scan:
-    path = REAL / "kitti_object" / "velodyne" / f"{name}.bin"
-    if not path.exists():
-        pytest.skip(f"{path} not available")
+    path = require_real() / "kitti_object" / "velodyne" / f"{name}.bin"
     pts = np.fromfile(path, np.float32).reshape(-1, 4)
     n = len(pts)
     rng = np.random.default_rng(7)
@@ -249,9 +246,7 @@ def test_deterministic_and_seed_dependent(kitti, runs):
 
 
 def test_nuscenes_scale_and_other_scans():
-    path = REAL / "nuscenes" / "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
-    if not path.exists():
-        pytest.skip("nuScenes sample not available")
+    path = require_real() / "nuscenes" / "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
     raw = np.fromfile(path, np.float32).reshape(-1, 5)
     scan = Scan(raw[:, :4], ring=raw[:, 4].astype(np.int16), intensity_scale=255.0)
     out, info = snow.apply(scan, snow.SEVERITIES["heavy"], NUSC, np.random.default_rng(2), return_info=True)

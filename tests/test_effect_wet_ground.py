@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,16 +17,14 @@ from omnilidar.domains.effects.base import SEVERITY_NAMES
 from omnilidar.domains.ground import estimate_ground
 from omnilidar.errors import InputError
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import require_real
 KITTI = PRESETS["kitti_hdl64e"]
 RNG = lambda seed=0: np.random.default_rng(seed)  # noqa: E731
 
 
 @pytest.fixture(scope="module")
 def real():
-    path = REAL / "kitti_object" / "velodyne" / "000000.bin"
-    if not path.is_file():
-        pytest.skip(f"{path} missing")
+    path = require_real() / "kitti_object" / "velodyne" / "000000.bin"
     pts = np.fromfile(path, np.float32).reshape(-1, 4)
     n = len(pts)
     rng = RNG(5)

@@ -30,12 +30,13 @@ from omnilidar.metrics.extractors.weights import (
 )
 from omnilidar.metrics.generation import compare, domain_statistics, set_features
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import REAL, require_real
 SPEC = RangeImageSpec(32, 256, 3.0, -25.0, 1.45, 80.0)
 
 
 @pytest.fixture(scope="module")
 def real_images() -> np.ndarray:
+    require_real()
     out = []
     for name in ("000000", "000001"):
         proj = project(read_points(REAL / "kitti_object" / "velodyne" / f"{name}.bin"), SPEC)
@@ -234,6 +235,7 @@ def test_self_trained_checkpoint_round_trip_and_tag(tmp_path):
 @pytest.fixture(scope="module")
 def labelled_entries(tmp_path_factory) -> list[dict]:
     """Two real KITTI scans with simple labels (road below -1.5 m, building above)."""
+    require_real()
     root = tmp_path_factory.mktemp("labelled")
     entries = []
     for name in ("000000", "000001"):

@@ -16,7 +16,7 @@ from omnilidar.io.semantickitti import read_points, write_points
 from omnilidar.metrics.extractors.weights import build_model, save_self_trained
 from omnilidar.report.generation import metric_table, pareto_front, provenance_note
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import REAL, require_real
 DOMAINS = ["Vehicle", "Beam32"]
 
 
@@ -37,6 +37,7 @@ def fixture_dir(tmp_path_factory) -> Path:
     from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT
     from omnilidar.generator.unet import build_denoiser, range_image_spec
 
+    require_real()
     root = tmp_path_factory.mktemp("gen_targets")
     g = tiny_generator_settings()
     spec = range_image_spec(g)
@@ -175,8 +176,6 @@ def test_workflow_plans_the_evaluation_targets(tmp_path):
 
     (tmp_path / "wf").mkdir()
     work = copy_workflow(tmp_path / "wf")
-    shared = tmp_path / "shared"  # the domain reports name real scans as ../shared/data/real/...
-    shared.symlink_to(REAL.parents[1], target_is_directory=True)
     snake = work / "Snakefile"
     text = snake.read_text()
     missing = "".join(f'include: "rules/{f}.smk"\n' for f in ("domains", "generator", "evaluation")

@@ -4,7 +4,6 @@ quadruped) against their labels, and sanity on real KITTI scans."""
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +21,7 @@ from omnilidar.domains.ground import (
     up_vector,
 )
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import require_real
 PLATFORMS = platform_sensors()
 
 
@@ -152,9 +151,7 @@ def test_mask_scores():
 
 @pytest.mark.parametrize("name", ["kitti_object/velodyne/000000.bin", "kitti_object/velodyne/000001.bin"])
 def test_real_kitti_ground_is_a_plane_near_the_mount_height(name):
-    path = REAL / name
-    if not path.is_file():
-        pytest.skip(f"{path} missing")
+    path = require_real() / name
     pts = np.fromfile(path, np.float32).reshape(-1, 4)
     mask = estimate_ground(Scan(pts), PRESETS["kitti_hdl64e"])
     assert 0.3 < mask.mean() < 0.8

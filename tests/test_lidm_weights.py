@@ -16,7 +16,6 @@ offsets 0..1, and output ``o`` receives ``x[o + offset_t] @ K[t]`` (strided:
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,7 +28,7 @@ from omnilidar.metrics.extractors.weights import build_model, file_sha, load_ext
 from omnilidar.sparse.conv import SparseConv3d, SparseInverseConv3d, SubMConv3d
 from omnilidar.sparse.tensor import SparseTensor
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import require_real
 SPVNAS_CS = [32, 32, 64, 128, 256, 256, 128, 96, 96]
 
 
@@ -274,7 +273,7 @@ def test_lidm_checkpoint_file_loads_directly_with_official_tag(tmp_path, spvcnn_
     assert loaded.arch["width"] == "W16" and loaded.comparable_with_paper
     from omnilidar.io.semantickitti import read_points
 
-    pts = read_points(REAL / "kitti_object" / "velodyne" / "000000.bin")[::200]
+    pts = read_points(require_real() / "kitti_object" / "velodyne" / "000000.bin")[::200]
     feats = loaded.extract({"points": [pts]})
     assert feats.shape == (1, 16 * 48) and np.isfinite(feats).all() and np.abs(feats).sum() > 0
 

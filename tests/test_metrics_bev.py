@@ -31,7 +31,7 @@ from omnilidar.metrics.bev import (
     protocol_subset,
 )
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import REAL, require_real
 KITTI_SCANS = [REAL / "kitti_object" / "velodyne" / f"00000{i}.bin" for i in (0, 1)]
 
 
@@ -41,6 +41,7 @@ def _read_bin(path: Path) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def kitti_scans() -> list[np.ndarray]:
+    require_real()
     return [_read_bin(p) for p in KITTI_SCANS]
 
 

@@ -1,6 +1,5 @@
 """Range-image projection, encoding and back-projection."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,12 +20,13 @@ from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import PRESETS
 from omnilidar.errors import InputError
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import REAL, require_real
 KITTI = REAL / "kitti_object" / "velodyne" / "000001.bin"
 SPEC = RangeImageSpec.from_sensor(PRESETS["kitti_hdl64e"])
 
 
 def _kitti():
+    require_real()
     return np.fromfile(KITTI, np.float32).reshape(-1, 4)
 
 

@@ -1,7 +1,5 @@
 """Ring recovery and beam reduction."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -9,13 +7,14 @@ from omnilidar.data.rings import beam_reduce, recover_rings
 from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import PRESETS
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import REAL, needs_real, require_real
 KITTI = REAL / "kitti_object" / "velodyne" / "000000.bin"
 NUSC = REAL / "nuscenes" / "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
 HDL64 = PRESETS["kitti_hdl64e"]
 
 
 def _kitti():
+    require_real()
     return np.fromfile(KITTI, np.float32).reshape(-1, 4)
 
 
@@ -71,6 +70,7 @@ def test_non_finite_get_minus_one_and_small_scans_fall_back():
     assert recover_rings(np.zeros((0, 4), np.float32), HDL64).shape == (0,)
 
 
+@needs_real
 def test_nuscenes_rings_agree_where_geometry_is_defined():
     raw = np.fromfile(NUSC, np.float32).reshape(-1, 5)
     sensor = PRESETS["nuscenes_hdl32e"]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +14,7 @@ from omnilidar.errors import InputError
 from omnilidar.io.semantickitti import read_points
 from omnilidar.sparse import SparseTensor
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+from real_samples import REAL, require_real
 SCAN = REAL / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin"
 
 
@@ -30,6 +29,7 @@ def one_thread():
 
 @pytest.fixture(scope="module")
 def crop():
+    require_real()
     pts = read_points(SCAN)
     keep = (np.abs(pts[:, 0]) < 6) & (np.abs(pts[:, 1]) < 6)
     return pts[keep]

@@ -13,7 +13,8 @@ from omnilidar.data.synthetic.scene import generate_scene
 from omnilidar.data.synthetic.sequence import shard_entropy, simulate_sequence
 from omnilidar.data.synthetic.statistics import scan_statistics
 from omnilidar.data.synthetic.trajectory import route_poses
-from omnilidar.io.semantickitti import LEARNING_MAP
+from omnilidar.io.semantickitti import LEARNING_MAP, read_points
+from real_samples import needs_real, require_real
 
 SETTINGS = section_defaults("synthetic")
 
@@ -123,6 +124,15 @@ def test_ring_major_order_matches_kitti_files(world):
     first_ring = scan.points[scan.ring == scan.ring[0]]
     az = np.mod(np.arctan2(first_ring[:, 1], first_ring[:, 0]), 2 * np.pi)
     assert (np.diff(az) > -0.05).mean() > 0.99  # counter-clockwise from straight ahead
+
+
+@needs_real
+def test_kitti_sweeps_hold_about_as_many_points_as_real_kitti(world):
+    _, _, _, scans = world
+    real = [read_points(p) for p in sorted((require_real() / "kitti_object" / "velodyne").glob("*.bin"))]
+    assert real
+    ratio = np.mean([len(s.points) for s in scans]) / np.mean([len(p) for p in real])
+    assert 0.7 < ratio < 1.3, "synthetic HDL-64 scans should hold about as many points as KITTI's"
 
 
 def test_kitti_scan_statistics_are_realistic(world):

@@ -107,22 +107,18 @@ def _edit_config(wd, change):
 
 
 @pytest.mark.slow
-def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path, real_data):
+def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path):
     """One real run of data, domains, generator and sampling on the tiny config,
     then dry runs after each kind of change (settings, code, comments)."""
     wd = copy_workflow(tmp_path)
     original = (wd / TINY).read_text()
-    _edit_config(wd, lambda c: c["data_summary"].update(
-        reference_scans=[str(p) for p in sorted(real_data.glob("kitti_object/velodyne/*.bin"))]))
     target = ("results/data_summary.json", "samples", "--configfile", TINY)
     snakemake(wd, *target)
 
     summary = yaml.safe_load((wd / "results" / "data_summary.json").read_text())
     assert summary["experiment"] == "data_summary"
     assert summary["data_source"]["semantickitti"] == "synthetic"
-    real = summary["groups"]["real_kitti_reference"]["points_per_scan"]["mean"]
-    synthetic = summary["groups"]["semantickitti"]["points_per_scan"]["mean"]
-    assert 0.7 < synthetic / real < 1.3, "synthetic HDL-64 scans should hold about as many points as KITTI's"
+    # Points per scan against real KITTI: test_synthetic_world (it needs the real samples).
     assert (wd / "results" / "figures" / "data_summary.png").stat().st_size > 1000
     assert len(list((wd / "data" / "samples" / "Drone" / "shard_0" / "velodyne").glob("*.bin"))) == 2
     assert planned_jobs(wd, *target) == {}, "a finished workflow plans nothing"
@@ -141,8 +137,6 @@ def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path, real_data):
     assert jobs["sample_domain"] == 8
     assert re.search(r"reason: .*[Pp]arams", rerun_reasons(wd, *target))
     (wd / TINY).write_text(original)
-    _edit_config(wd, lambda c: c["data_summary"].update(
-        reference_scans=[str(p) for p in sorted(real_data.glob("kitti_object/velodyne/*.bin"))]))
     assert planned_jobs(wd, *target) == {}
 
     # Generator architecture: retrain and resample, but neither prompts nor domains.

@@ -12,8 +12,10 @@ def add_arguments(parser) -> None:
     seed_arg(parser)
     parser.add_argument("--out", required=True, help="results JSON to write")
     parser.add_argument("--figure", required=True, help="figure (.png) to write")
-    parser.add_argument("scans", nargs="*", help="real KITTI .bin scan(s) (default: tradeoff.scans or the "
-                                                 "first fidelity scan)")
+    parser.add_argument("--index", default=None, help="SemanticKITTI index JSON: without scans, the study runs "
+                                                       "on the first scan of fidelity.split")
+    parser.add_argument("scans", nargs="*", help="KITTI .bin scan(s) (default: tradeoff.scans or the "
+                                                 "first fidelity scan, else --index)")
 
 
 def run(args) -> int:
@@ -22,21 +24,23 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.data.sensors import get_sensor
-    from omnilidar.domains.fidelity import read_scans
+    from omnilidar.domains.fidelity import index_scan_paths, read_scans
     from omnilidar.domains.tradeoff import plot_tradeoff, tradeoff_study
     from omnilidar.io.atomic import write_text_atomic
     from omnilidar.provenance import envelope
 
     settings = validate(dict(args.settings), "domains.schema.yaml", source="--settings")
     cfg = settings["tradeoff"]
-    paths = args.scans or cfg["scans"] or settings["fidelity"]["scans"][:1]
+    paths, source = args.scans or cfg["scans"] or settings["fidelity"]["scans"][:1], "real"
+    if not paths and args.index:
+        paths, source = index_scan_paths(args.index, settings["fidelity"]["split"], 1)
     t0 = time.perf_counter()
     scans = read_scans(paths)
     sensor = get_sensor(cfg["sensor"])
     studies = [tradeoff_study(scan, sensor, cfg["effects"], cfg["severity"], cfg["seeds"]) for _, scan in scans]
     wall = time.perf_counter() - t0
     result = envelope("effects_tradeoff", "effects-tradeoff", cfg, {"seed": args.seed, "curves": cfg["seeds"]},
-                      {"effects_tradeoff": wall}, "real", scans=[p for p, _ in scans],
+                      {"effects_tradeoff": wall}, source, scans=[p for p, _ in scans],
                       effects=studies[0], per_scan=studies[1:])
     write_text_atomic(args.out, json.dumps(result, indent=1))
     plot_tradeoff(studies[0], args.figure)

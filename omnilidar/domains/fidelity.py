@@ -1,4 +1,4 @@
-"""Fidelity report: what each effect does to real scans, per severity.
+"""Fidelity report: what each effect does to KITTI-format scans, per severity.
 
 For every effect and each of its named severities, on the given scans and seeds
 (parameters are drawn per scan, e.g. fog's attenuation, as in the domains):
@@ -27,6 +27,7 @@ import numpy as np
 from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains import ground as ground_estimation
+from omnilidar.domains.source import load_index, split_entries
 from omnilidar.domains.spec import effect_module
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
@@ -85,10 +86,22 @@ ANCHORS: dict[str, dict] = {
 
 
 def read_scans(paths: list[str | Path]) -> list[tuple[str, Scan]]:
-    """Read real KITTI-format scans; InputError if none are given."""
+    """Read KITTI-format scans; InputError if none are given."""
     if not paths:
-        raise InputError(None, "no scans given (set domains.fidelity.scans to real KITTI .bin files)")
+        raise InputError(None, "no scans given (list KITTI .bin files in domains.fidelity.scans or pass "
+                               "a SemanticKITTI index)")
     return [(str(p), semantickitti.read_scan(p)) for p in paths]
+
+
+def index_scan_paths(index_path: str | Path, split: str, count: int) -> tuple[list[str], str]:
+    """The first ``count`` scans of one split of a SemanticKITTI index (in the embedded default the
+    synthetic world's full HDL-64E sweeps) and where they come from: "synthetic" or the index's root."""
+    index = load_index(index_path, "semantickitti")
+    entries = split_entries(index, split, index_path)
+    if not entries:
+        raise InputError(index_path, f"split {split!r} holds no scans")
+    source = "synthetic" if index.get("source") == "synthetic" else str(index.get("root"))
+    return [entry["points"] for entry in entries[:count]], source
 
 
 def measure(scan: Scan, effect: str, severity: str, sensor: SensorSpec, seed: int) -> dict:
