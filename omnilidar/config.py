@@ -5,6 +5,12 @@ file, which refers to one ``<section>.schema.yaml`` per stage. The Snakefile
 validates the user's config with them; library code and tests get a stage's
 defaults from the same files through :func:`section_defaults`, so defaults live
 in one place. Unknown keys are errors (``additionalProperties: false``).
+
+A schema is read when a validation refers to it, so validating one section reads
+that section's schema only. Which one is the caller's choice: every package
+module that validates names its schema and declares it in ``DATA_FILES``, so that
+the schema is part of its stage's code hash (``omnilidar.provenance``). The
+whole-config schema is for the Snakefile and tests.
 """
 
 from __future__ import annotations
@@ -37,12 +43,12 @@ def _without_dialect(schema: dict) -> dict:
     return {k: v for k, v in schema.items() if k != "$schema"}
 
 
+def _retrieve(name: str) -> Resource:
+    return Resource(contents=_without_dialect(_load_schema(name)), specification=DRAFT202012)
+
+
 def _registry() -> Registry:
-    resources = [
-        (p.name, Resource(contents=_without_dialect(_load_schema(p.name)), specification=DRAFT202012))
-        for p in sorted(SCHEMA_DIR.glob("*.yaml"))
-    ]
-    return Registry().with_resources(resources)
+    return Registry(retrieve=_retrieve)  # schemas are read when referred to
 
 
 def _fill_defaults_validator():

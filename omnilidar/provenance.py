@@ -3,11 +3,30 @@
 Stdlib only: the Snakefile imports this module at parse time, and every cluster
 job re-parses the Snakefile.
 
-A stage's code hash covers exactly the package modules its command imports,
-followed transitively (also imports inside functions). Each module is hashed
-through its AST with docstrings removed, so editing a comment, a docstring or the
-formatting changes no hash and reruns nothing, while any code change reruns the
-stages that import the edited module and only those.
+A stage's code hash covers exactly the code its command runs: the ``omnilidar``
+entry point (``omnilidar.cli``) and the command's module, followed transitively
+through import statements (also imports inside functions), plus the data files
+those modules read. Each module is hashed through its AST with docstrings
+removed, so editing a comment, a docstring or the formatting changes no hash and
+reruns nothing, while any code change reruns the stages that import the edited
+module and only those.
+
+Two declarations, read from a module's AST (nothing is imported):
+
+- ``DATA_FILES``: a tuple of the non-Python files the module reads at run time,
+  as paths relative to the checkout (the directory holding the package), e.g.
+  ``("workflow/schemas/generator.schema.yaml",)``. Their contents are hashed
+  with the module (YAML without comment lines and blank lines, JSON parsed and
+  dumped canonically, anything else byte for byte).
+- ``DISPATCHES``: packages whose modules this module imports only to pick one by
+  name at run time (a registry, e.g. the effects of ``omnilidar.domains.spec``).
+  Those imports are the only ones that ``exclude`` cuts: an excluded module is
+  left out unless a module the stage runs imports it for real (``beam_missing``
+  imports ``beam_reduction``: a domain using beam missing depends on both).
+
+Package ``__init__`` modules import no submodules of their package (a test holds
+this), so importing ``omnilidar.metrics.bev`` does not widen a closure to every
+metric.
 """
 
 from __future__ import annotations
@@ -16,9 +35,11 @@ import ast
 import hashlib
 import json
 import platform
+import re
 import time
 from functools import cache
 from pathlib import Path
+from typing import NamedTuple
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 PACKAGE = PACKAGE_DIR.name
@@ -54,18 +75,39 @@ def _dotted_name(path: Path) -> str:
     return ".".join(parts)
 
 
-def _imports(path: Path, tree: ast.AST) -> set[Path]:
-    """Package files imported anywhere in a module (plus parent packages' __init__)."""
+def _declared(tree: ast.Module, name: str, path: Path) -> tuple[str, ...]:
+    """A module-level ``NAME = (str, ...)`` (or one str) declaration; () if absent."""
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else \
+            [node.target] if isinstance(node, ast.AnnAssign) and node.value is not None else []
+        if any(isinstance(t, ast.Name) and t.id == name for t in targets):
+            try:
+                value = ast.literal_eval(node.value)
+            except ValueError:
+                value = None
+            value = (value,) if isinstance(value, str) else value
+            if not isinstance(value, (tuple, list)) or not all(isinstance(v, str) for v in value):
+                raise ValueError(f"{path}: {name} must be a literal tuple of strings")
+            return tuple(value)
+    return ()
+
+
+def _imports(path: Path, tree: ast.AST, dispatches: tuple[str, ...] = ()) -> tuple[set[Path], set[Path]]:
+    """Package files imported anywhere in a module (plus parent packages' __init__),
+    split into ordinary imports and registry imports of modules in ``dispatches``."""
     own = _dotted_name(path)
     is_pkg = path.name == "__init__.py"
     found: set[Path] = set()
+    dispatched: set[Path] = set()
 
     def add(dotted: str) -> None:
         parts = dotted.split(".")
         for i in range(1, len(parts) + 1):  # parent packages run their __init__
-            f = _module_file(".".join(parts[:i]))
+            prefix = ".".join(parts[:i])
+            f = _module_file(prefix)
             if f is not None:
-                found.add(f)
+                registry = any(prefix.startswith(pkg + ".") for pkg in dispatches)
+                (dispatched if registry else found).add(f)
 
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -83,48 +125,117 @@ def _imports(path: Path, tree: ast.AST) -> set[Path]:
             for alias in node.names:  # ``from pkg import module``
                 add(f"{base}.{alias.name}")
     found.discard(path)
-    return found
+    return found, dispatched - found - {path}
+
+
+class _Parsed(NamedTuple):
+    code: str  # AST dump without docstrings
+    imports: frozenset[Path]  # ordinary imports
+    dispatched: frozenset[Path]  # registry imports (DISPATCHES), cut by ``exclude``
+    data_files: tuple[Path, ...]  # DATA_FILES, resolved
 
 
 @cache
-def _parsed(path: Path) -> tuple[str, frozenset[Path]]:
+def _parsed(path: Path) -> _Parsed:
     tree = ast.parse(path.read_text(), filename=str(path))
-    deps = frozenset(_imports(path, tree))
-    return ast.dump(_strip_docstrings(tree)), deps
+    imports, dispatched = _imports(path, tree, _declared(tree, "DISPATCHES", path))
+    root = PACKAGE_DIR.parent
+    data = []
+    for rel in _declared(tree, "DATA_FILES", path):
+        f = (root / rel).resolve()
+        if not f.is_file() or not f.is_relative_to(root.resolve()):
+            raise ValueError(f"{path}: DATA_FILES names {rel!r}, which is not a file under {root}")
+        data.append(f)
+    return _Parsed(ast.dump(_strip_docstrings(tree)), frozenset(imports), frozenset(dispatched), tuple(data))
 
 
 def module_closure(*modules: str, exclude: tuple[str, ...] = ()) -> list[Path]:
-    """All package files reachable by imports from the given dotted modules,
-    not entering the ``exclude`` modules (e.g. effects a domain does not use)."""
-    todo = [_module_file(m) for m in modules]
-    # Importing a module runs its parent packages' __init__ too.
-    todo += [_module_file(".".join(m.split(".")[:i])) for m in modules for i in range(1, m.count(".") + 1)]
-    missing = [m for m, f in zip(modules, todo[: len(modules)]) if f is None]
+    """All package files reachable by imports from the given dotted modules.
+
+    ``exclude`` names registry entries the stage does not use (e.g. the effects a
+    domain does not apply): the registry's imports of them (``DISPATCHES``) are not
+    followed, every other import is, so an excluded module that a used module
+    imports is in the closure."""
+    roots = [_module_file(m) for m in modules]
+    missing = [m for m, f in zip(modules, roots) if f is None]
     if missing:
         raise ValueError(f"no such package module: {', '.join(missing)}")
-    seen: set[Path] = {f for f in map(_module_file, exclude) if f is not None}
-    skipped = set(seen)
+    # Importing a module runs its parent packages' __init__ too.
+    todo = roots + [_module_file(".".join(m.split(".")[:i])) for m in modules for i in range(1, m.count(".") + 1)]
+    cut = {_module_file(m): m for m in exclude}
+    if None in cut:
+        raise ValueError(f"no such package module to exclude: {cut[None]}")
+    seen: set[Path] = set()
+    registry_entries: set[Path] = set()
     while todo:
         f = todo.pop()
         if f is None or f in seen:
             continue
         seen.add(f)
-        todo.extend(_parsed(f)[1] - seen)
-    return sorted(seen - skipped)
+        parsed = _parsed(f)
+        registry_entries |= parsed.dispatched
+        todo.extend(parsed.imports - seen)
+        todo.extend(parsed.dispatched - seen - cut.keys())
+    stray = sorted(m for f, m in cut.items() if f not in registry_entries)
+    if stray:
+        raise ValueError(f"exclude cuts only registry imports (DISPATCHES); no module of this stage "
+                         f"dispatches to {', '.join(stray)}")
+    return sorted(seen)
+
+
+def _data_content(path: Path) -> bytes:
+    """A data file's content up to formatting: YAML without comment-only and blank
+    lines (outside block scalars), JSON parsed and dumped canonically, other bytes as is."""
+    raw = path.read_bytes()
+    if path.suffix == ".json":
+        try:
+            return json.dumps(json.loads(raw), sort_keys=True, separators=(",", ":")).encode()
+        except ValueError:
+            return raw
+    if path.suffix not in (".yaml", ".yml"):
+        return raw
+    kept, block = [], None  # block: indentation of the key that opened a block scalar
+    for line in raw.decode().splitlines():
+        stripped = line.strip()
+        indent = len(line) - len(line.lstrip())
+        if block is not None and (not stripped or indent > block):
+            kept.append(line)  # block scalar content: every character counts
+            continue
+        block = None
+        if not stripped or stripped.startswith("#"):
+            continue
+        kept.append(line.rstrip())
+        if _BLOCK_SCALAR.search(stripped):
+            block = indent
+    return "\n".join(kept).encode()
+
+
+# A line that opens a YAML block scalar (``key: |``, ``- >-``, ``key: |2 # note``).
+_BLOCK_SCALAR = re.compile(r"(^|\s)[|>][-+0-9]*\s*(#.*)?$")
 
 
 def code_hash(*modules: str, exclude: tuple[str, ...] = ()) -> str:
-    """Content hash (16 hex digits) of the code the given modules run."""
+    """Content hash (16 hex digits) of the code the given modules run and the data
+    files they declare."""
     h = hashlib.sha256()
+    data: set[Path] = set()
     for f in module_closure(*modules, exclude=exclude):
         h.update(str(f.relative_to(PACKAGE_DIR)).encode())
-        h.update(_parsed(f)[0].encode())
+        parsed = _parsed(f)
+        h.update(parsed.code.encode())
+        data.update(parsed.data_files)
+    root = PACKAGE_DIR.parent.resolve()
+    for f in sorted(data):
+        h.update(b"\0data:" + str(f.relative_to(root)).encode() + b"\0")
+        h.update(_data_content(f))
     return h.hexdigest()[:16]
 
 
 def command_code_hash(command: str, exclude: tuple[str, ...] = ()) -> str:
-    """Code hash of one ``omnilidar`` subcommand (``omnilidar.commands.<name>``)."""
-    return code_hash(f"{PACKAGE}.commands.{command.replace('-', '_')}", exclude=exclude)
+    """Code hash of one ``omnilidar`` subcommand: the entry point (``omnilidar.cli``,
+    which imports only the module of the command it runs) and
+    ``omnilidar.commands.<name>``."""
+    return code_hash(f"{PACKAGE}.cli", f"{PACKAGE}.commands.{command.replace('-', '_')}", exclude=exclude)
 
 
 def config_hash(section) -> str:

@@ -21,6 +21,8 @@ def package_copy(tmp_path, monkeypatch):
     (pkg / "core.py").write_text("def f():\n    return 1\n")
     (pkg / "other.py").write_text("def g():\n    return 2\n")
     (pkg / "helpers.py").write_text("X = 3\n")
+    (pkg / "cli.py").write_text("import importlib\nfrom omnilidar import commands\n")
+    (pkg / "commands" / "another.py").write_text("Y = 1\n")
     (pkg / "commands" / "stage.py").write_text(textwrap.dedent('''\
         """A stage."""
         from omnilidar.core import f
@@ -45,6 +47,14 @@ def test_closure_follows_absolute_relative_and_local_imports(package_copy):
     files = {p.name for p in provenance.module_closure("omnilidar.commands.stage")}
     assert files == {"stage.py", "core.py", "helpers.py", "__init__.py"}
     assert "other.py" not in files
+
+
+def test_a_command_hash_covers_the_entry_point_but_not_the_other_commands(package_copy):
+    before = _hash()
+    (package_copy / "commands" / "another.py").write_text("Y = 2\n")
+    assert _hash() == before
+    (package_copy / "cli.py").write_text("import importlib\nfrom omnilidar import commands\nZ = 1\n")
+    assert _hash() != before
 
 
 def test_comment_docstring_and_formatting_edits_keep_the_hash(package_copy):
@@ -77,10 +87,139 @@ def test_config_hash_ignores_key_order_but_not_values():
     assert provenance.config_hash({"a": 1, "b": 2}) != provenance.config_hash({"a": 2, "b": 1})
 
 
-def test_excluded_modules_are_neither_hashed_nor_followed(package_copy):
-    files = {p.name for p in provenance.module_closure("omnilidar.commands.stage", exclude=("omnilidar.core",))}
-    assert "core.py" not in files and "helpers.py" in files
-    before = provenance.command_code_hash("stage", exclude=("omnilidar.core",))
-    (package_copy / "core.py").write_text("def f():\n    return 5\n")
+def _plugin_package(pkg):
+    """A registry (DISPATCHES) of three plugins, one of which imports another."""
+    (pkg / "plugins").mkdir()
+    (pkg / "plugins" / "__init__.py").write_text("")
+    (pkg / "plugins" / "used.py").write_text("from omnilidar.plugins.shared import S\nU = S + 1\n")
+    (pkg / "plugins" / "shared.py").write_text("S = 1\n")
+    (pkg / "plugins" / "unused.py").write_text("V = 1\n")
+    (pkg / "registry.py").write_text(textwrap.dedent('''\
+        from omnilidar.plugins import shared, unused, used
+
+        DISPATCHES = ("omnilidar.plugins",)
+        PLUGINS = {"shared": shared, "unused": unused, "used": used}
+        '''))
+    (pkg / "commands" / "stage.py").write_text("from omnilidar.registry import PLUGINS\n")
+
+
+def test_exclude_cuts_the_registry_import_but_not_imports_by_used_modules(package_copy):
+    _plugin_package(package_copy)
+    exclude = ("omnilidar.plugins.shared", "omnilidar.plugins.unused")
+    files = {p.name for p in provenance.module_closure("omnilidar.commands.stage", exclude=exclude)}
+    assert {"registry.py", "used.py", "shared.py"} <= files and "unused.py" not in files
+
+    def stage_hash():
+        provenance._parsed.cache_clear()
+        return provenance.command_code_hash("stage", exclude=exclude)
+
+    before = stage_hash()
+    (package_copy / "plugins" / "unused.py").write_text("V = 2\n")
+    assert stage_hash() == before, "a plugin the stage does not use"
+    (package_copy / "plugins" / "shared.py").write_text("S = 2\n")
+    assert stage_hash() != before, "excluded from the registry, but imported by a used plugin"
+    assert "unused.py" in {p.name for p in provenance.module_closure("omnilidar.commands.stage")}
+
+
+def test_exclude_of_a_module_no_registry_dispatches_to_fails(package_copy):
+    with pytest.raises(ValueError, match="registry imports"):
+        provenance.command_code_hash("stage", exclude=("omnilidar.core",))
+    with pytest.raises(ValueError, match="no such package module"):
+        provenance.command_code_hash("stage", exclude=("omnilidar.nothing",))
+
+
+def _declare(pkg, *files):
+    (pkg / "helpers.py").write_text(f"DATA_FILES = {files!r}\nX = 3\n")
+
+
+def test_declared_data_files_are_hashed_up_to_comments_and_formatting(package_copy):
+    root = package_copy.parent
+    (root / "tables").mkdir()
+    (root / "tables" / "t.yaml").write_text("# a table\na: 1\nb:\n  - 2\ntext: |\n  # kept: block content\n")
+    (root / "tables" / "t.json").write_text('{"a": 1, "b": [2]}')
+    (root / "tables" / "t.txt").write_text("x\n")
+    _declare(package_copy, "tables/t.yaml", "tables/t.json", "tables/t.txt")
+    before = _hash()
+    (root / "tables" / "t.yaml").write_text("a: 1   \n\n# another comment\nb:\n  - 2\ntext: |\n  # kept: block content\n")
+    (root / "tables" / "t.json").write_text('{\n  "b": [2],\n  "a": 1\n}\n')
+    assert _hash() == before
+    for name, content in (("t.yaml", "a: 1\nb:\n  - 3\ntext: |\n  # kept: block content\n"),
+                          ("t.yaml", "a: 1\nb:\n  - 2\ntext: |\n  # edited block content\n"),
+                          ("t.json", '{"a": 1, "b": [3]}'), ("t.txt", "y\n")):
+        old = (root / "tables" / name).read_text()
+        (root / "tables" / name).write_text(content)
+        assert _hash() != before, (name, content)
+        (root / "tables" / name).write_text(old)
+    assert _hash() == before
+
+
+def test_a_declared_data_file_that_does_not_exist_fails(package_copy):
+    _declare(package_copy, "tables/missing.yaml")
+    with pytest.raises(ValueError, match="DATA_FILES names 'tables/missing.yaml'"):
+        _hash()
+
+
+@pytest.fixture()
+def project_copy(tmp_path, monkeypatch, project_root):
+    """A copy of the real package and its schemas, hashed by a patched provenance."""
+    shutil.copytree(project_root / "omnilidar", tmp_path / "omnilidar",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(project_root / "workflow" / "schemas", tmp_path / "workflow" / "schemas")
+    monkeypatch.setattr(provenance, "PACKAGE_DIR", tmp_path / "omnilidar")
     provenance._parsed.cache_clear()
-    assert provenance.command_code_hash("stage", exclude=("omnilidar.core",)) == before
+    yield tmp_path
+    provenance._parsed.cache_clear()
+
+
+EFFECTS = ("beam_missing", "beam_reduction", "fog", "rain", "snow", "wet_ground")
+
+
+def _domain_hash(*used):
+    """build-domain's hash for a domain applying ``used`` (as rules/common.smk's domain_code)."""
+    provenance._parsed.cache_clear()
+    unused = tuple(f"omnilidar.domains.effects.{m}" for m in EFFECTS if m not in used)
+    return provenance.command_code_hash("build-domain", exclude=unused)
+
+
+def _edit(path):
+    path.write_text(path.read_text() + "\n_EDITED = True\n")
+
+
+def test_a_domain_depends_on_its_effects_and_what_they_import_only(project_copy):
+    effects = project_copy / "omnilidar" / "domains" / "effects"
+    fog, beam_missing, vehicle = _domain_hash("fog"), _domain_hash("beam_missing"), _domain_hash()
+    _edit(effects / "snow.py")
+    assert (_domain_hash("fog"), _domain_hash("beam_missing"), _domain_hash()) == (fog, beam_missing, vehicle)
+    _edit(effects / "beam_reduction.py")
+    assert _domain_hash("beam_missing") != beam_missing, "beam_missing imports beam_reduction"
+    assert _domain_hash("fog") == fog
+    _edit(effects / "fog.py")
+    assert _domain_hash("fog") != fog
+
+
+def _command_hashes(*commands):
+    provenance._parsed.cache_clear()
+    return [provenance.command_code_hash(c) for c in commands]
+
+
+def test_editing_bev_metrics_reruns_no_labelling_or_segmentation(project_copy):
+    stages = ("pseudo-label", "train-labeler", "train-segmentor", "evaluate-segmentor", "generation-quality")
+    before = _command_hashes(*stages)
+    _edit(project_copy / "omnilidar" / "metrics" / "bev.py")
+    after = _command_hashes(*stages)
+    assert after[:4] == before[:4]
+    assert after[4] != before[4], "generation quality does use the BEV metrics"
+
+
+def test_a_schema_edit_reruns_the_stages_that_read_it(project_copy):
+    stages = ("train-generator", "sample", "build-domain", "train-segmentor")
+    before = _command_hashes(*stages)
+    schema = project_copy / "workflow" / "schemas" / "generator.schema.yaml"
+    text = schema.read_text()
+    schema.write_text("# a comment\n" + text.replace("\n", "\n\n", 3))
+    assert _command_hashes(*stages) == before, "comments and blank lines"
+    assert "\npresets:" in text
+    schema.write_text(text.replace("\npresets:", "\npresets:\n  extra_preset: {}", 1))
+    after = _command_hashes(*stages)
+    assert after[0] != before[0] and after[1] != before[1], "train-generator reads the presets"
+    assert after[2:] == before[2:]

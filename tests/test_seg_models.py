@@ -12,7 +12,7 @@ from omnilidar.downstream.seg.spvcnn import SPVCNN, devoxelize, spvcnn, trilinea
 from omnilidar.downstream.seg.voxelize import IGNORE_INDEX, collate, voxel_labels, voxelize
 from omnilidar.errors import InputError
 from omnilidar.io.semantickitti import read_points
-from omnilidar.sparse import SparseTensor
+from omnilidar.sparse.tensor import SparseTensor
 
 from real_samples import REAL, require_real
 SCAN = REAL / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin"

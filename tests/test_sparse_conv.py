@@ -9,8 +9,10 @@ import torch
 import torch.nn.functional as F
 
 from omnilidar.errors import InputError
-from omnilidar.sparse import SparseConv3d, SparseInverseConv3d, SparseTensor, SubMConv3d, resolve_backend
+from omnilidar.sparse.backend import resolve_backend
+from omnilidar.sparse.conv import SparseConv3d, SparseInverseConv3d, SubMConv3d
 from omnilidar.sparse.kernel_map import strided_map, submanifold_map
+from omnilidar.sparse.tensor import SparseTensor
 
 SHAPE = (6, 7, 5)
 

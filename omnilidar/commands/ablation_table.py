@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "score the ablation presets (single-domain ... full) averaged over domains"
+DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 LABELS = {
     "single_domain": "single-domain (Vehicle only)",

@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import settings_arg
 
 HELP = "write the domains index (name -> id and shard directories) the generator trains on"
+DATA_FILES = ("workflow/schemas/domains.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import seed_arg, settings_arg
 
 HELP = "accuracy/time curves of the effects' numerical knobs, with the chosen defaults marked"
+DATA_FILES = ("workflow/schemas/domains.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import settings_arg
 
 HELP = "encode the generator's prompt pools with the frozen text encoder (MiniLM offline, or CLIP)"
+DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import settings_arg
 
 HELP = "evaluate a segmentor on the official val split and/or folders of labelled scans (per-class IoU, mIoU, accuracy)"
+DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

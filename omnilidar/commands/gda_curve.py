@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "assemble mIoU against the number of generated scans and the seconds each point cost (results/gda_curve.json)"
+DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

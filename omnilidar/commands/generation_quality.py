@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "score generated scans of every domain (full model vs single-domain baselines) with JSD/MMD/FRD/FRID/FSVD/FPVD"
+DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 FULL = "OmniLiDAR"
 BASELINE = "single-domain (R2DM)"

@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "BEV JSD/MMD of trained vs untrained generator samples and per-domain statistics vs real scans"
+DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 STATS = ("empty_row_fraction", "near_range_fraction", "points_per_scan", "mean_elevation_deg", "mean_range_m")
 

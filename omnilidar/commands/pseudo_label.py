@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import settings_arg
 
 HELP = "pseudo-label one shard of generated scans (.label files in raw SemanticKITTI ids)"
+DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import seed_arg, settings_arg
 
 HELP = "sample a shard of range images + SemanticKITTI point clouds for one domain from a trained generator"
+DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
 
 HELP = "measure per-domain JSD/MMD/feature metric and seconds per scan for every sampler and step count"
+DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 # A point is "recommended" when it is the fastest whose mean metric is within this factor of the best.
 TOLERANCE = 1.10

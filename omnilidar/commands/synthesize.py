@@ -7,6 +7,7 @@ import argparse
 from omnilidar.commands._common import seed_arg, settings_arg
 
 HELP = "generate one shard (sequence, platform or split) of a synthetic dataset in its real on-disk layout"
+DATA_FILES = ("workflow/schemas/synthetic.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

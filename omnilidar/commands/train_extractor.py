@@ -7,6 +7,8 @@ import json
 from omnilidar.commands._common import seed_arg, settings_arg
 
 HELP = "train a generation-metric feature extractor (FRD/FRID/FSVD/FPVD/FPD) when no official weights are given"
+# Run time reads (omnilidar.provenance).
+DATA_FILES = ("workflow/schemas/evaluation.schema.yaml", "workflow/schemas/generator.schema.yaml")
 
 
 def add_arguments(parser) -> None:

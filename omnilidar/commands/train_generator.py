@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import seed_arg, settings_arg
 
 HELP = "train the text-conditioned range-image diffusion generator (resumes from --work-dir)"
+DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

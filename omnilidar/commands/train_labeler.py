@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import seed_arg, settings_arg
 
 HELP = "make the fixed pseudo-labeler: import downstream.labeler.checkpoint or train it on the full real train split"
+DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

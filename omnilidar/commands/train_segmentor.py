@@ -5,6 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import seed_arg, settings_arg
 
 HELP = "train MinkUNet or SPVCNN from scratch on a real label subset, plus pseudo-labelled generated scans for GDA"
+DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:

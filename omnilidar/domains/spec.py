@@ -11,6 +11,8 @@ Effects are the modules of ``omnilidar.domains.effects`` (interface in
 ``effects/base.py``), listed in :data:`EFFECTS` by their config name. The
 imports are static on purpose: the per-stage code hash (``omnilidar.provenance``)
 follows import statements, so editing an effect reruns the stages that use it.
+:data:`DISPATCHES` marks them as a registry, so a domain's build hash can leave
+out the effects it does not apply (and keeps those its effects import).
 
 Specs are built from the validated ``domains`` config section
 (``workflow/schemas/domains.schema.yaml``); entries that are not domains are the
@@ -27,6 +29,10 @@ import numpy as np
 from omnilidar.data.sensors import SensorSpec, get_sensor
 from omnilidar.domains.effects import beam_missing, beam_reduction, fog, rain, snow, wet_ground
 from omnilidar.errors import InputError
+
+# The effects are imported as a registry: a stage runs those its config names
+# (omnilidar.provenance, ``exclude``).
+DISPATCHES = ("omnilidar.domains.effects",)
 
 EFFECTS: dict[str, ModuleType] = {
     "fog": fog,

@@ -12,6 +12,8 @@ import copy
 from omnilidar.config import _load_schema, validate
 from omnilidar.errors import InputError
 
+DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omnilidar.provenance)
+
 
 def ablation_presets() -> dict[str, dict]:
     """{preset name: patch} in the paper's table order."""
