@@ -16,8 +16,8 @@ Two declarations, read from a module's AST (nothing is imported):
 - ``DATA_FILES``: a tuple of the non-Python files the module reads at run time,
   as paths relative to the checkout (the directory holding the package), e.g.
   ``("workflow/schemas/generator.schema.yaml",)``. Their contents are hashed
-  with the module (YAML without comment lines and blank lines, JSON parsed and
-  dumped canonically, anything else byte for byte).
+  with the module (YAML and JSON parsed and dumped canonically, JSON schemas
+  without their descriptions and titles; anything else byte for byte).
 - ``DISPATCHES``: packages whose modules this module imports only to pick one by
   name at run time (a registry, e.g. the effects of ``omnilidar.domains.spec``).
   Those imports are the only ones that ``exclude`` cuts: an excluded module is
@@ -183,35 +183,42 @@ def module_closure(*modules: str, exclude: tuple[str, ...] = ()) -> list[Path]:
     return sorted(seen)
 
 
+def _without_prose(node):
+    """A JSON schema without the keys that only document it (descriptions, titles, comments)."""
+    if isinstance(node, dict):
+        return {k: _without_prose(v) for k, v in node.items() if k not in _SCHEMA_PROSE}
+    if isinstance(node, list):
+        return [_without_prose(v) for v in node]
+    return node
+
+
+_SCHEMA_PROSE = ("description", "title", "$comment", "examples")
+
+
 def _data_content(path: Path) -> bytes:
-    """A data file's content up to formatting: YAML without comment-only and blank
-    lines (outside block scalars), JSON parsed and dumped canonically, other bytes as is."""
-    raw = path.read_bytes()
-    if path.suffix == ".json":
-        try:
-            return json.dumps(json.loads(raw), sort_keys=True, separators=(",", ":")).encode()
-        except ValueError:
-            return raw
-    if path.suffix not in (".yaml", ".yml"):
+    """A data file's content up to formatting: YAML and JSON parsed and dumped
+    canonically (a ``*.schema.yaml`` also without its descriptions and titles, which
+    change no validation or default), other bytes as they are."""
+    return _canonical(path.name, path.read_bytes())
+
+
+@cache
+def _canonical(name: str, raw: bytes) -> bytes:
+    suffix = Path(name).suffix
+    if suffix not in (".json", ".yaml", ".yml"):
         return raw
-    kept, block = [], None  # block: indentation of the key that opened a block scalar
-    for line in raw.decode().splitlines():
-        stripped = line.strip()
-        indent = len(line) - len(line.lstrip())
-        if block is not None and (not stripped or indent > block):
-            kept.append(line)  # block scalar content: every character counts
-            continue
-        block = None
-        if not stripped or stripped.startswith("#"):
-            continue
-        kept.append(line.rstrip())
-        if _BLOCK_SCALAR.search(stripped):
-            block = indent
-    return "\n".join(kept).encode()
+    try:
+        if suffix == ".json":
+            doc = json.loads(raw)
+        else:
+            import yaml  # PyYAML: a dependency of ours and of Snakemake, light to import
 
-
-# A line that opens a YAML block scalar (``key: |``, ``- >-``, ``key: |2 # note``).
-_BLOCK_SCALAR = re.compile(r"(^|\s)[|>][-+0-9]*\s*(#.*)?$")
+            doc = yaml.safe_load(raw)
+    except ValueError:
+        return raw
+    if name.endswith((".schema.yaml", ".schema.json")):
+        doc = _without_prose(doc)
+    return json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str).encode()
 
 
 def code_hash(*modules: str, exclude: tuple[str, ...] = ()) -> str:

@@ -223,3 +223,18 @@ def test_a_schema_edit_reruns_the_stages_that_read_it(project_copy):
     after = _command_hashes(*stages)
     assert after[0] != before[0] and after[1] != before[1], "train-generator reads the presets"
     assert after[2:] == before[2:]
+
+
+def test_schema_descriptions_rerun_nothing_but_defaults_do(tmp_path):
+    """A schema's prose (description, title) changes no validation or default: no hash changes."""
+    from omnilidar.provenance import _data_content
+
+    schema = tmp_path / "s.schema.yaml"
+    schema.write_text("type: object\nproperties:\n  lr:\n    type: number\n    default: 0.1\n"
+                      "    description: Learning rate.\n")
+    before = _data_content(schema)
+    schema.write_text("type: object\ntitle: Now titled\nproperties:\n  lr:\n    type: number\n    default: 0.1\n"
+                      "    description: >\n      The learning rate, explained at length.\n")
+    assert _data_content(schema) == before
+    schema.write_text(schema.read_text().replace("default: 0.1", "default: 0.2"))
+    assert _data_content(schema) != before
