@@ -1,5 +1,6 @@
 # Helpers shared by the workflow: validated config, per-stage settings, code hashes, shards.
 import json
+import re
 import sys
 
 from omnilidar.config import validate
@@ -59,14 +60,35 @@ def synthetic_shards(name):
     raise ValueError(f"unknown dataset {name}")
 
 
+# Where each dataset's shard lies below its synthetic root (the dataset's own layout), and
+# the shard names the workflow accepts.
+SYNTHETIC_SHARD_LAYOUT = {
+    "semantickitti": ("sequences/{shard}", r"\d\d"),
+    "kitti360": ("data_3d_raw/2013_05_28_drive_{shard}_sync", r"\d{4}"),
+    "pi3det": ("{shard}", r"vehicle|drone|quadruped"),
+    "nuscenes": ("{shard}", r"train|val"),
+}
+
+
 def synthetic_shard_dirs(name):
-    pattern = {
-        "semantickitti": "{root}/sequences/{shard}",
-        "kitti360": "{root}/data_3d_raw/2013_05_28_drive_{shard}_sync",
-        "pi3det": "{root}/{shard}",
-        "nuscenes": "{root}/{shard}",
-    }[name]
-    return [pattern.format(root=f"{DATA}/synthetic/{name}", shard=s) for s in synthetic_shards(name)]
+    layout, _ = SYNTHETIC_SHARD_LAYOUT[name]
+    return [f"{DATA}/synthetic/{name}/{layout.format(shard=s)}" for s in synthetic_shards(name)]
+
+
+def synthetic_shard_dir_regex():
+    """Wildcard constraint of a shard folder below its dataset's synthetic root, tied to the
+    dataset in the path before it (so that pi3det/train or nuscenes/sequences/08 match nothing)."""
+    alternatives = []
+    for name, (layout, shard) in SYNTHETIC_SHARD_LAYOUT.items():
+        before, after = layout.split("{shard}")
+        alternatives.append(f"(?<=/{name}/){re.escape(before)}(?:{shard}){re.escape(after)}")
+    return "|".join(alternatives)
+
+
+def synthetic_shard(name, shard_dir):
+    """The shard name in a shard folder of one dataset (sequences/08 -> 08)."""
+    before, after = SYNTHETIC_SHARD_LAYOUT[name][0].split("{shard}")
+    return shard_dir[len(before) : len(shard_dir) - len(after)]
 
 
 def sample_shards(domain):
