@@ -11,9 +11,9 @@ import yaml
 
 from ground_scenes import make_scene
 from omnilidar.config import section_defaults
-from omnilidar.data.sensors import PRESETS
 from omnilidar.domains.spec import domain_names
 from omnilidar.io import semantickitti
+from omnilidar.lidar.sensors import PRESETS
 from workflow_helpers import copy_workflow, planned_jobs, snakemake, synthesized_shards
 
 
