@@ -24,11 +24,11 @@ import numpy as np  # noqa: E402
 
 from omnilidar.config import section_defaults  # noqa: E402
 from omnilidar.data.range_image import RangeImageSpec, to_range_image  # noqa: E402
-from omnilidar.data.sensors import PRESETS  # noqa: E402
 from omnilidar.domains.builder import build_scan, scan_rng  # noqa: E402
 from omnilidar.domains.corruption import CORRUPTIONS, corruption_scene  # noqa: E402
 from omnilidar.domains.spec import domains_from_settings  # noqa: E402
 from omnilidar.io import semantickitti  # noqa: E402
+from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 SCANS = [REAL / "kitti_object" / "velodyne" / "000000.bin", REAL / "kitti_object" / "velodyne" / "000001.bin",

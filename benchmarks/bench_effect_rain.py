@@ -22,10 +22,10 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from omnilidar.data.scan import Scan  # noqa: E402
-from omnilidar.data.sensors import PRESETS  # noqa: E402
 from omnilidar.domains.effects import rain  # noqa: E402
 from omnilidar.domains.effects._mie import mie_efficiencies  # noqa: E402
+from omnilidar.lidar.scan import Scan  # noqa: E402
+from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_object" / "velodyne"
 SENSOR = PRESETS["kitti_hdl64e"]

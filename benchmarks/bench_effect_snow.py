@@ -15,9 +15,9 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from omnilidar.data.scan import Scan  # noqa: E402
-from omnilidar.data.sensors import PRESETS  # noqa: E402
 from omnilidar.domains.effects import snow  # noqa: E402
+from omnilidar.lidar.scan import Scan  # noqa: E402
+from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_object" / "velodyne"
 ANCHOR_S = 35.0  # anchor: ~35-42 s CPU per scan (REFERENCE 4)

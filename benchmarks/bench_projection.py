@@ -16,7 +16,7 @@ import numpy as np  # noqa: E402
 
 from omnilidar.data.range_image import RangeImageSpec, decode, encode, project, unproject  # noqa: E402
 from omnilidar.data.rings import recover_rings  # noqa: E402
-from omnilidar.data.sensors import PRESETS  # noqa: E402
+from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
 SCAN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_object" / "velodyne" / "000001.bin"
 

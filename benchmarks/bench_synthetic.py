@@ -43,11 +43,11 @@ def main() -> None:
 
     t0 = time.perf_counter()
     from omnilidar.config import section_defaults
-    from omnilidar.data.sensors import PRESETS
     from omnilidar.data.synthetic import raycast
     from omnilidar.data.synthetic.render import render_scan
     from omnilidar.data.synthetic.scene import generate_scene
     from omnilidar.data.synthetic.trajectory import route_poses
+    from omnilidar.lidar.sensors import PRESETS
 
     print(f"import (numba + package): {time.perf_counter() - t0:.2f} s")
     settings = section_defaults("synthetic")

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.data.boxes import points_in_boxes
 from omnilidar.io import kitti_object, nuscenes, semantickitti
+from omnilidar.lidar.boxes import points_in_boxes
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 KITTI = REAL / "kitti_object" / "velodyne" / "000001.bin"

@@ -11,7 +11,7 @@ import numpy as np
 
 from omnilidar.data.range_image import RangeImageSpec, decode, encode, project
 from omnilidar.data.rings import recover_rings
-from omnilidar.data.sensors import PRESETS
+from omnilidar.lidar.sensors import PRESETS
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 KITTI = sorted((REAL / "kitti_object" / "velodyne").glob("*.bin"))

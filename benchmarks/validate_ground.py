@@ -30,9 +30,9 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from ground_scenes import make_scene, platform_sensors, tilted  # noqa: E402
 
-from omnilidar.data.scan import Scan  # noqa: E402
-from omnilidar.data.sensors import PRESETS  # noqa: E402
 from omnilidar.domains.ground import estimate_ground, ground_truth_mask, mask_scores  # noqa: E402
+from omnilidar.lidar.scan import Scan  # noqa: E402
+from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
 REAL = ROOT.parent / "shared" / "data" / "real"
 KITTI_SCANS = [

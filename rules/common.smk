@@ -1,6 +1,7 @@
 # Helpers shared by the workflow: validated config, per-stage settings, code hashes, shards.
 import json
 import os
+import re
 import sys
 
 from omnilidar.config import validate
@@ -114,14 +115,35 @@ def synthetic_shards(name):
     raise ValueError(f"unknown dataset {name}")
 
 
+# Where each dataset's shard lies below its synthetic root (the dataset's own layout), and
+# the shard names the workflow accepts.
+SYNTHETIC_SHARD_LAYOUT = {
+    "semantickitti": ("sequences/{shard}", r"\d\d"),
+    "kitti360": ("data_3d_raw/2013_05_28_drive_{shard}_sync", r"\d{4}"),
+    "pi3det": ("{shard}", r"vehicle|drone|quadruped"),
+    "nuscenes": ("{shard}", r"train|val"),
+}
+
+
 def synthetic_shard_dirs(name):
-    pattern = {
-        "semantickitti": "{root}/sequences/{shard}",
-        "kitti360": "{root}/data_3d_raw/2013_05_28_drive_{shard}_sync",
-        "pi3det": "{root}/{shard}",
-        "nuscenes": "{root}/{shard}",
-    }[name]
-    return [pattern.format(root=f"{DATA}/synthetic/{name}", shard=s) for s in synthetic_shards(name)]
+    layout, _ = SYNTHETIC_SHARD_LAYOUT[name]
+    return [f"{DATA}/synthetic/{name}/{layout.format(shard=s)}" for s in synthetic_shards(name)]
+
+
+def synthetic_shard_dir_regex():
+    """Wildcard constraint of a shard folder below its dataset's synthetic root, tied to the
+    dataset in the path before it (so that pi3det/train or nuscenes/sequences/08 match nothing)."""
+    alternatives = []
+    for name, (layout, shard) in SYNTHETIC_SHARD_LAYOUT.items():
+        before, after = layout.split("{shard}")
+        alternatives.append(f"(?<=/{name}/){re.escape(before)}(?:{shard}){re.escape(after)}")
+    return "|".join(alternatives)
+
+
+def synthetic_shard(name, shard_dir):
+    """The shard name in a shard folder of one dataset (sequences/08 -> 08)."""
+    before, after = SYNTHETIC_SHARD_LAYOUT[name][0].split("{shard}")
+    return shard_dir[len(before) : len(shard_dir) - len(after)]
 
 
 def sample_shards(domain):
@@ -135,6 +157,8 @@ def sample_shards(domain):
 DOMAIN_SECTION_KEYS = ("range_image", "corrupted", "fidelity", "tradeoff")
 DOMAIN_NAMES = [k for k in config["domains"] if k not in DOMAIN_SECTION_KEYS]
 EFFECT_MODULES = ("beam_missing", "beam_reduction", "fog", "rain", "snow", "wet_ground")
+# The corrupted val sets (rules/domains.smk builds them; the downstream helpers below name them).
+CORRUPTED = f"{DATA}/semantickitti_c"
 
 
 def domain_label(name):
@@ -170,7 +194,13 @@ def _check_image_geometry():
 _check_image_geometry()
 
 
-# Evaluation helpers (rules/evaluation.smk defines EVAL, EXTRACTORS, METRIC_KIND).
+# Evaluation helpers (rules/evaluation.smk), after what they read.
+
+EXTRACTORS = f"{DATA}/extractors"
+EVAL = config["evaluation"]
+METRIC_KIND = {"FRD": "frd", "FRID": "frid", "FSVD": "fsvd", "FPVD": "fpvd", "FPD": "fpd"}
+# Settings a stage does not read stay out of its params, so changing them reruns nothing.
+TABLES = ("generation_quality", "ablation", "kitti360", "tradeoff", "evidence")
 
 
 def extractor_weights(*metric_lists):
@@ -198,7 +228,14 @@ def eval_settings(*reads):
     return settings("evaluation", drop=tuple(t for t in TABLES if t not in reads))
 
 
-# Downstream helpers (rules/downstream.smk defines DOWNSTREAM, PSEUDO, SEG, CORRUPTED_DIR, ...).
+# Downstream helpers (rules/downstream.smk), after what they read.
+
+SEG = f"{DATA}/segmentation"
+PSEUDO = f"{DATA}/pseudo_labels"
+DOWNSTREAM = config["downstream"]
+EXPERIMENTS = DOWNSTREAM["experiments"]
+CORRUPTIONS = config["domains"]["corrupted"]["corruptions"]
+SEVERITIES = config["domains"]["corrupted"]["severities"]
 
 
 def downstream_settings(*keys):
@@ -227,19 +264,19 @@ def pseudo_label_shards(name):
 def eval_sets(w):
     """--set NAME=DIR arguments and folders of an evaluation group."""
     if w.evalset == "corrupted":
-        return {f"{c}/{s}": f"{CORRUPTED_DIR}/{c}/{s}" for c in CORRUPTIONS for s in SEVERITIES}
+        return {f"{c}/{s}": f"{CORRUPTED}/{c}/{s}" for c in CORRUPTIONS for s in SEVERITIES}
     if w.evalset == "weather":
         stf = EXPERIMENTS["semanticstf"]
         if stf["subsets"]:
             return dict(stf["subsets"])
-        return {name: f"{CORRUPTED_DIR}/{cs}" for name, cs in stf["standin_sets"].items()}
+        return {name: f"{CORRUPTED}/{cs}" for name, cs in stf["standin_sets"].items()}
     return {}
 
 
 def eval_inputs(w):
     sets = eval_sets(w)
     # Real folders given in config are read as they are; corrupted sets are built.
-    return [d for d in sets.values() if d.startswith(f"{CORRUPTED_DIR}/")]
+    return [d for d in sets.values() if d.startswith(f"{CORRUPTED}/")]
 
 
 def run_evaluation(dataset, backbone, pct, augmentation, evalset):
@@ -264,7 +301,7 @@ GDA_RESULT = (
 GDA_RESULT_STANDIN = GDA_RESULT.replace("> {log}", "{params.standin} > {log}")
 
 
-# GDA curve helpers (downstream.experiments.gda_curve; rules/downstream.smk defines EXPERIMENTS).
+# GDA curve helpers (downstream.experiments.gda_curve).
 
 
 def _check_gda_curve():

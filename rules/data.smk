@@ -10,93 +10,23 @@ SYNTHESIZE = (
 )
 
 
-rule synthesize_semantickitti:
+rule synthesize:
+    """One shard of one synthetic dataset, in that dataset's own layout."""
     output:
-        directory(f"{SYNTH}/semantickitti/sequences/{{shard}}"),
+        directory(f"{SYNTH}/{{dataset}}/{{shard_dir}}"),
     wildcard_constraints:
-        shard=r"\d\d",
+        dataset="|".join(SYNTHETIC_SHARD_LAYOUT),
+        shard_dir=synthetic_shard_dir_regex(),
     params:
-        dataset="semantickitti",
-        shard=lambda w: w.shard,
+        dataset=lambda w: w.dataset,
+        shard=lambda w: synthetic_shard(w.dataset, w.shard_dir),
         settings=settings("synthetic"),
         seed=config["seed"],
         code=code("synthesize"),
     log:
-        f"logs/synthesize/semantickitti_{{shard}}.log",
+        f"logs/synthesize/{{dataset}}/{{shard_dir}}.log",
     benchmark:
-        f"benchmarks/out/synthesize/semantickitti_{{shard}}.tsv"
-    conda:
-        ENV
-    resources:
-        mem_mb=2000,
-        runtime=30,
-    shell:
-        SYNTHESIZE
-
-
-rule synthesize_kitti360:
-    output:
-        directory(f"{SYNTH}/kitti360/data_3d_raw/2013_05_28_drive_{{shard}}_sync"),
-    wildcard_constraints:
-        shard=r"\d{4}",
-    params:
-        dataset="kitti360",
-        shard=lambda w: w.shard,
-        settings=settings("synthetic"),
-        seed=config["seed"],
-        code=code("synthesize"),
-    log:
-        f"logs/synthesize/kitti360_{{shard}}.log",
-    benchmark:
-        f"benchmarks/out/synthesize/kitti360_{{shard}}.tsv"
-    conda:
-        ENV
-    resources:
-        mem_mb=2000,
-        runtime=30,
-    shell:
-        SYNTHESIZE
-
-
-rule synthesize_pi3det:
-    output:
-        directory(f"{SYNTH}/pi3det/{{shard}}"),
-    wildcard_constraints:
-        shard=r"vehicle|drone|quadruped",
-    params:
-        dataset="pi3det",
-        shard=lambda w: w.shard,
-        settings=settings("synthetic"),
-        seed=config["seed"],
-        code=code("synthesize"),
-    log:
-        f"logs/synthesize/pi3det_{{shard}}.log",
-    benchmark:
-        f"benchmarks/out/synthesize/pi3det_{{shard}}.tsv"
-    conda:
-        ENV
-    resources:
-        mem_mb=2000,
-        runtime=30,
-    shell:
-        SYNTHESIZE
-
-
-rule synthesize_nuscenes:
-    output:
-        directory(f"{SYNTH}/nuscenes/{{shard}}"),
-    wildcard_constraints:
-        shard=r"train|val",
-    params:
-        dataset="nuscenes",
-        shard=lambda w: w.shard,
-        settings=settings("synthetic"),
-        seed=config["seed"],
-        code=code("synthesize"),
-    log:
-        f"logs/synthesize/nuscenes_{{shard}}.log",
-    benchmark:
-        f"benchmarks/out/synthesize/nuscenes_{{shard}}.tsv"
+        f"benchmarks/out/synthesize/{{dataset}}/{{shard_dir}}.tsv"
     conda:
         ENV
     resources:

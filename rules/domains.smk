@@ -2,7 +2,7 @@
 # files, the SemanticKITTI-C-style corrupted sets, and the effect reports.
 
 DOMAINS = f"{DATA}/domains"
-CORRUPTED = f"{DATA}/semantickitti_c"
+# CORRUPTED (the corrupted sets' folder) is in rules/common.smk, whose helpers name it.
 
 
 # Every shard directory (one build_domain job each), every corrupted set, and the scans of

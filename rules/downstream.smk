@@ -11,17 +11,12 @@
 # Sample shards come from rules/generator.smk (rule sample_domain; common.smk's
 # sample_shards(label)); experiments name domains by their config keys.
 
+# SEG, PSEUDO, DOWNSTREAM, EXPERIMENTS, CORRUPTIONS and SEVERITIES are in rules/common.smk,
+# whose helpers read them.
 SUBSETS = f"{DATA}/subsets"
-SEG = f"{DATA}/segmentation"
-PSEUDO = f"{DATA}/pseudo_labels"
 LABELER = f"{DATA}/labeler/semantickitti.pt"
-DOWNSTREAM = config["downstream"]
-EXPERIMENTS = DOWNSTREAM["experiments"]
 GDA_CURVE = EXPERIMENTS["gda_curve"]
 TRAINING_KEYS = ("backend", "device", "voxel_size", "max_voxels", "max_points", "models", "schedule", "augmentation")
-CORRUPTED_DIR = CORRUPTED  # rules/domains.smk
-CORRUPTIONS = config["domains"]["corrupted"]["corruptions"]
-SEVERITIES = config["domains"]["corrupted"]["severities"]
 
 
 

@@ -3,20 +3,16 @@
 # the generator evidence. Needs rules/generator.smk and rules/domains.smk included first;
 # the study's downstream panel reads results/gda_curve.json (rules/downstream.smk).
 
-EXTRACTORS = f"{DATA}/extractors"
+# EXTRACTORS, EVAL, METRIC_KIND and TABLES are in rules/common.smk, whose helpers read them.
 SINGLE_DOMAIN = f"{DATA}/generator_single"
-EVAL = config["evaluation"]
 # The generator's domain labels (prompt pools), e.g. Vehicle, WetGround.
 GEN_DOMAINS = list(config["generator"]["prompts"])
-METRIC_KIND = {"FRD": "frd", "FRID": "frid", "FSVD": "fsvd", "FPVD": "fpvd", "FPD": "fpd"}
 
 
 GQ_WEIGHTS = extractor_weights(EVAL["generation_quality"]["metrics"])
 ABL_WEIGHTS = extractor_weights(EVAL["ablation"]["metrics"])
 K360_WEIGHTS = extractor_weights(EVAL["kitti360"]["metrics"])
 TRADEOFF_WEIGHTS = extractor_weights([EVAL["tradeoff"]["feature_metric"]])
-# Settings a stage does not read stay out of its params, so changing them reruns nothing.
-TABLES = ("generation_quality", "ablation", "kitti360", "tradeoff", "evidence")
 
 
 rule train_extractor:

@@ -13,8 +13,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 
 def _ray_box(o, d, lo, hi):
@@ -145,7 +145,7 @@ def make_scene(
 
 def platform_sensors() -> dict[str, SensorSpec]:
     """The three platforms' sensors (presets)."""
-    from omnilidar.data.sensors import PRESETS
+    from omnilidar.lidar.sensors import PRESETS
 
     return {
         "vehicle": PRESETS["kitti_hdl64e"],

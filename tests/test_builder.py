@@ -12,7 +12,6 @@ import pytest
 from ground_scenes import make_scene
 from omnilidar.config import section_defaults
 from omnilidar.data.index import build_index, write_index
-from omnilidar.data.sensors import PRESETS
 from omnilidar.domains import builder as B
 from omnilidar.domains import ground as G
 from omnilidar.domains.effects import snow as S
@@ -23,6 +22,7 @@ from omnilidar.domains.spec import EffectSpec, SceneSpec, domains_from_settings,
 from omnilidar.errors import InputError
 from omnilidar.generator.data import load_range_image, read_domains_index
 from omnilidar.io import semantickitti
+from omnilidar.lidar.sensors import PRESETS
 
 KITTI = PRESETS["kitti_hdl64e"]
 ALL_WEATHER = [("wet_ground", ["light", "moderate", "heavy"]), ("fog", ["light", "moderate", "heavy"]),

@@ -11,11 +11,11 @@ import pytest
 from ground_scenes import make_scene
 from omnilidar.config import section_defaults
 from omnilidar.data.index import build_index, write_index
-from omnilidar.data.sensors import PRESETS
 from omnilidar.domains.builder import rebuild_scan
 from omnilidar.domains.corruption import CORRUPTIONS, build_corrupted_set, corruption_scene
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
+from omnilidar.lidar.sensors import PRESETS
 
 KITTI = PRESETS["kitti_hdl64e"]
 

@@ -11,10 +11,10 @@ import yaml
 
 from ground_scenes import make_scene
 from omnilidar.config import section_defaults
-from omnilidar.data.sensors import PRESETS
 from omnilidar.domains.spec import domain_names
 from omnilidar.io import semantickitti
-from workflow_helpers import copy_workflow, planned_jobs, snakemake
+from omnilidar.lidar.sensors import PRESETS
+from workflow_helpers import copy_workflow, planned_jobs, snakemake, synthesized_shards
 
 
 def _with_domain_stage(workdir):
@@ -46,16 +46,17 @@ def test_domains_target_builds_every_shard_and_corrupted_set(workdir):
     assert jobs["domains_index"] == 1 and jobs["domains"] == 1
     # Only the two sources the domains read are indexed.
     assert jobs["index_dataset"] == 2
-    assert "synthesize_kitti360" not in jobs and "synthesize_nuscenes" not in jobs
+    assert set(synthesized_shards(workdir, "domains")).isdisjoint({"kitti360", "nuscenes"})
 
 
 def test_a_domain_needs_only_its_own_source(workdir):
     fog = planned_jobs(workdir, "data/domains/fog/shard_1")
     assert fog["build_domain"] == 1 and fog["index_dataset"] == 1
-    assert "synthesize_pi3det" not in fog and "build_corrupted" not in fog
+    assert "pi3det" not in synthesized_shards(workdir, "data/domains/fog/shard_1") and "build_corrupted" not in fog
     drone = planned_jobs(workdir, "data/domains/drone/shard_0")
-    assert drone["build_domain"] == 1 and "synthesize_semantickitti" not in drone
-    assert drone["synthesize_pi3det"] >= 1
+    drone_shards = synthesized_shards(workdir, "data/domains/drone/shard_0")
+    assert drone["build_domain"] == 1 and "semantickitti" not in drone_shards
+    assert drone_shards["pi3det"] >= 1
 
 
 def test_tiny_real_run_of_one_domain_shard(workdir, tmp_path):
@@ -94,7 +95,7 @@ def test_domain_reports_run_on_synthetic_sweeps_unless_scans_are_listed(workdir,
     reports = ("results/domain_fidelity.json", "results/effects_tradeoff.json")
     jobs = planned_jobs(workdir, *reports)
     assert jobs["domain_fidelity"] == 1 and jobs["effects_tradeoff"] == 1
-    assert jobs["index_dataset"] == 1 and jobs["synthesize_semantickitti"] >= 1
+    assert jobs["index_dataset"] == 1 and synthesized_shards(workdir, *reports).get("semantickitti", 0) >= 1
     scans = []
     for i in range(2):
         scans.append(tmp_path / f"{i:06d}.bin")

@@ -10,11 +10,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.integrate import quad
 
-from omnilidar.data.scan import Boxes, Scan
-from omnilidar.data.sensors import PRESETS
 from omnilidar.domains.effects import fog
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Boxes, Scan
+from omnilidar.lidar.sensors import PRESETS
 
 from real_samples import REAL, needs_real, require_real
 KITTI = PRESETS["kitti_hdl64e"]

@@ -8,12 +8,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from omnilidar.data.scan import Boxes, Scan
-from omnilidar.data.sensors import PRESETS
 from omnilidar.domains.effects import rain
 from omnilidar.domains.effects._mie import mie_efficiencies
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Boxes, Scan
+from omnilidar.lidar.sensors import PRESETS
 
 from real_samples import require_real
 KITTI = PRESETS["kitti_hdl64e"]

@@ -9,11 +9,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from omnilidar.data.scan import Boxes, Scan
-from omnilidar.data.sensors import PRESETS
 from omnilidar.domains.effects import snow
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Boxes, Scan
+from omnilidar.lidar.sensors import PRESETS
 
 from real_samples import require_real
 KITTI = PRESETS["kitti_hdl64e"]

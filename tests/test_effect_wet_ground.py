@@ -10,12 +10,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ground_scenes import make_scene
-from omnilidar.data.scan import Boxes, Scan
-from omnilidar.data.sensors import PRESETS
 from omnilidar.domains.effects import wet_ground as W
 from omnilidar.domains.effects.base import SEVERITY_NAMES
 from omnilidar.domains.ground import estimate_ground
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Boxes, Scan
+from omnilidar.lidar.sensors import PRESETS
 
 from real_samples import require_real
 KITTI = PRESETS["kitti_hdl64e"]

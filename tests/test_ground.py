@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from ground_scenes import make_scene, platform_sensors, tilted
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import PRESETS
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import PRESETS
 from omnilidar.domains.ground import (
     estimate_ground,
     fit_plane_normal,

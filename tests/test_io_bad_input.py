@@ -10,9 +10,9 @@ import re
 import numpy as np
 import pytest
 
-from omnilidar.data.scan import Boxes, Scan
 from omnilidar.errors import InputError
 from omnilidar.io import kitti360, kitti_object, nuscenes, pi3det, pointfile, semantickitti
+from omnilidar.lidar.scan import Boxes, Scan
 
 GOOD_LABEL = "Car 0.00 0 1.85 387.63 181.54 423.81 203.12 1.67 1.87 3.69 -16.53 2.39 58.49 1.57\n"
 GOOD_CALIB = (

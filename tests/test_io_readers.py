@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from omnilidar.data.boxes import box_corners, points_in_boxes
-from omnilidar.data.scan import Boxes, Scan
 from omnilidar.io import kitti360, kitti_object, nuscenes, pi3det, semantickitti
+from omnilidar.lidar.boxes import box_corners, points_in_boxes
+from omnilidar.lidar.scan import Boxes, Scan
 
 NUSC_NAME = "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
 KITTI_COUNTS = {"000000": 115_384, "000001": 120_268}

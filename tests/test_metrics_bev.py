@@ -10,8 +10,8 @@ import pytest
 from scipy.spatial.distance import jensenshannon
 
 import omnilidar.metrics.bev as bev
-from omnilidar.data.scan import Scan
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Scan
 from omnilidar.metrics.bev import (
     BevScores,
     bev_histogram,

@@ -16,9 +16,9 @@ from omnilidar.data.range_image import (
     to_range_image,
     unproject,
 )
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import PRESETS
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import PRESETS
 
 from real_samples import REAL, require_real
 KITTI = REAL / "kitti_object" / "velodyne" / "000001.bin"
@@ -159,7 +159,7 @@ def test_bad_shapes_raise_input_error():
 def test_pitched_sensor_projects_in_its_own_frame():
     """Drone scans are stored levelled; projection undoes the mount pitch so rows are beams."""
     from omnilidar.data.range_image import RangeImageSpec, project, unproject
-    from omnilidar.data.sensors import PRESETS, sensor_to_levelled
+    from omnilidar.lidar.sensors import PRESETS, sensor_to_levelled
 
     sensor = PRESETS["drone_os64"]
     spec = RangeImageSpec.from_sensor(sensor, width=256)

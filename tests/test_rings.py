@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from omnilidar.data.rings import beam_reduce, recover_rings
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import PRESETS
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import PRESETS
 
 from real_samples import REAL, needs_real, require_real
 KITTI = REAL / "kitti_object" / "velodyne" / "000000.bin"

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from omnilidar.config import section_defaults
-from omnilidar.data.sensors import PRESETS
 from omnilidar.data.synthetic import classes as C
 from omnilidar.data.synthetic.render import render_scan
 from omnilidar.data.synthetic.scene import generate_scene
@@ -14,6 +13,7 @@ from omnilidar.data.synthetic.sequence import shard_entropy, simulate_sequence
 from omnilidar.data.synthetic.statistics import scan_statistics
 from omnilidar.data.synthetic.trajectory import route_poses
 from omnilidar.io.semantickitti import LEARNING_MAP, read_points
+from omnilidar.lidar.sensors import PRESETS
 from real_samples import needs_real, require_real
 
 SETTINGS = section_defaults("synthetic")

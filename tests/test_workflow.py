@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from omnilidar.config import load_config
-from workflow_helpers import copy_workflow, planned_jobs, rerun_reasons, snakemake
+from workflow_helpers import copy_workflow, planned_jobs, rerun_reasons, snakemake, synthesized_shards
 
 TINY = "config/test.yaml"
 DATASETS = ("semantickitti", "kitti360", "pi3det", "nuscenes")
@@ -20,12 +20,13 @@ def workdir(tmp_path_factory):
 
 
 def _shard_counts(config: dict) -> dict[str, int]:
+    """Synthesize jobs per dataset: one per sequence, platform or split."""
     synth = config["synthetic"]["datasets"]
     return {
-        "synthesize_semantickitti": len(synth["semantickitti"]["sequences"]),
-        "synthesize_kitti360": len(synth["kitti360"]["sequences"]),
-        "synthesize_pi3det": len(synth["pi3det"]["platforms"]),
-        "synthesize_nuscenes": len(synth["nuscenes"]["splits"]),
+        "semantickitti": len(synth["semantickitti"]["sequences"]),
+        "kitti360": len(synth["kitti360"]["sequences"]),
+        "pi3det": len(synth["pi3det"]["platforms"]),
+        "nuscenes": len(synth["nuscenes"]["splits"]),
     }
 
 
@@ -38,16 +39,16 @@ def test_lint_is_clean(workdir):
 def test_data_summary_dag_has_one_job_per_shard(workdir, configfile):
     config = load_config(workdir / configfile)
     jobs = planned_jobs(workdir, "results/data_summary.json", "--configfile", configfile)
-    expected = {**_shard_counts(config), "index_dataset": 4, "data_summary": 1}
-    assert jobs == expected
+    shards = _shard_counts(config)
+    assert jobs == {"synthesize": sum(shards.values()), "index_dataset": 4, "data_summary": 1}
+    assert synthesized_shards(workdir, "results/data_summary.json", "--configfile", configfile) == shards
     # Sharded, not one job per scan: the embedded default stays a small DAG.
     assert sum(jobs.values()) < 60
 
 
 def test_embedded_default_job_counts_are_pinned(workdir):
-    jobs = planned_jobs(workdir, "results/data_summary.json")
-    assert jobs["synthesize_semantickitti"] == 13  # sequences 00-12: train, val 08, two test
-    assert jobs["index_dataset"] == 4
+    assert synthesized_shards(workdir, "results/data_summary.json")["semantickitti"] == 13  # 00-12: train, val 08, two test
+    assert planned_jobs(workdir, "results/data_summary.json")["index_dataset"] == 4
 
 
 def test_real_roots_are_indexed_not_generated(workdir, tmp_path):
@@ -76,7 +77,7 @@ def test_slurm_profile_asks_gpus_for_gpu_rules_only(workdir):
         if rule and res:
             resources.setdefault(rule.group(1), res.group(1))
     assert "gpu=1" in resources["train_generator"] and "gpu=1" in resources["sample_domain"]
-    assert "gpu" not in resources["synthesize_semantickitti"] and "gpu" not in resources["build_domain"]
+    assert "gpu" not in resources["synthesize"] and "gpu" not in resources["build_domain"]
     assert "slurm_account=" in resources["train_generator"]
 
 
@@ -86,7 +87,7 @@ def test_paper_config_plans_paper_scale_shards(workdir):
     sampling = config["generator"]["sampling"]
     assert sampling["scans_per_domain"] == 10000 and config["generator"]["training"]["iterations"] == 500000
     assert jobs["sample_domain"] == sampling["scans_per_domain"] // sampling["scans_per_shard"]  # Vehicle only
-    assert "synthesize_semantickitti" not in jobs and jobs["index_dataset"] >= 1  # real roots are indexed
+    assert "synthesize" not in jobs and jobs["index_dataset"] >= 1  # real roots are indexed
 
 
 def test_generator_dag_shards_sampling(workdir):
@@ -148,7 +149,7 @@ def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path):
     fog = dict(yaml.safe_load((wd / TINY).read_text())["domains"]["fog"])
     _edit_config(wd, lambda c: c["domains"]["fog"].update(effects=[{"name": "fog", "severities": ["heavy"]}]))
     jobs = planned_jobs(wd, *target)
-    assert jobs.get("build_domain") == 1 and "synthesize_semantickitti" not in jobs, jobs
+    assert jobs.get("build_domain") == 1 and "synthesize" not in jobs, jobs
     assert jobs["train_generator"] == 1
     _edit_config(wd, lambda c: c["domains"].update(fog=fog))
 
@@ -157,7 +158,7 @@ def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path):
     fog_py.write_text(fog_py.read_text() + "\n_EDITED = True\n")
     jobs = planned_jobs(wd, *target)
     assert jobs.get("build_domain") == 1, jobs
-    assert "synthesize_semantickitti" not in jobs and "encode_prompts" not in jobs
+    assert "synthesize" not in jobs and "encode_prompts" not in jobs
 
     # Settings of the summary only: only the summary reruns (plus the fog cascade above).
     _edit_config(wd, lambda c: c["data_summary"].update(max_scans=3))
@@ -172,4 +173,5 @@ def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path):
     # The root seed: every generation job and everything downstream.
     _edit_config(wd, lambda c: c.update(seed=1))
     jobs = planned_jobs(wd, "results/data_summary.json", "--configfile", TINY)
-    assert jobs == {**_shard_counts(load_config(wd / TINY)), "index_dataset": 4, "data_summary": 1}
+    shards = sum(_shard_counts(load_config(wd / TINY)).values())
+    assert jobs == {"synthesize": shards, "index_dataset": 4, "data_summary": 1}

@@ -7,6 +7,7 @@ import re
 import shutil
 import subprocess
 import sys
+from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,6 +49,25 @@ def planned_jobs(workdir: Path, *args: str) -> dict[str, int]:
         if m and m.group(1) != "total":
             counts[m.group(1)] = int(m.group(2))
     return counts
+
+
+def planned_job_wildcards(workdir: Path, *args: str) -> list[tuple[str, dict[str, str]]]:
+    """(rule, wildcards) of every job of a dry run."""
+    out = snakemake(workdir, "--dry-run", *args)
+    jobs = []
+    for block in re.split(r"\n(?=(?:local)?rule \w+:)", out.stdout + out.stderr):
+        rule = re.match(r"(?:local)?rule (\w+):", block)
+        if rule:
+            found = re.search(r"^\s+wildcards: (.*)$", block, re.M)
+            wildcards = dict(kv.split("=", 1) for kv in found.group(1).split(", ")) if found else {}
+            jobs.append((rule.group(1), wildcards))
+    return jobs
+
+
+def synthesized_shards(workdir: Path, *args: str) -> dict[str, int]:
+    """Synthesize jobs (shards) of a dry run per dataset; empty when none."""
+    jobs = planned_job_wildcards(workdir, *args)
+    return dict(Counter(w["dataset"] for rule, w in jobs if rule == "synthesize"))
 
 
 def rerun_reasons(workdir: Path, *args: str) -> str:

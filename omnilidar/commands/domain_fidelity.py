@@ -23,9 +23,9 @@ def run(args) -> int:
     import time
 
     from omnilidar.config import validate
-    from omnilidar.data.sensors import get_sensor
     from omnilidar.domains.fidelity import fidelity_report, index_scan_paths, plot_report, read_scans
     from omnilidar.io.atomic import write_text_atomic
+    from omnilidar.lidar.sensors import get_sensor
     from omnilidar.provenance import envelope
 
     settings = validate(dict(args.settings), "domains.schema.yaml", source="--settings")

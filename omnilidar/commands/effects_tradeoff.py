@@ -24,10 +24,10 @@ def run(args) -> int:
     import time
 
     from omnilidar.config import validate
-    from omnilidar.data.sensors import get_sensor
     from omnilidar.domains.fidelity import index_scan_paths, read_scans
     from omnilidar.domains.tradeoff import plot_tradeoff, tradeoff_study
     from omnilidar.io.atomic import write_text_atomic
+    from omnilidar.lidar.sensors import get_sensor
     from omnilidar.provenance import envelope
 
     settings = validate(dict(args.settings), "domains.schema.yaml", source="--settings")

@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec, levelled_to_sensor, sensor_to_levelled
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec, levelled_to_sensor, sensor_to_levelled
 
 _F32_MAX = float(np.finfo(np.float32).max)
 

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import median_filter
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec, levelled_to_sensor
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec, levelled_to_sensor
 
 # Hough search over the per-laser height offset h (metres).
 _H_MAX = 0.4

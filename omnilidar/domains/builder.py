@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from omnilidar.data.range_image import RangeImageSpec, to_range_image
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 from omnilidar.domains import ground as ground_estimation
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
 from omnilidar.domains.source import LABEL_FORMATS, load_index, read_entry, split_entries

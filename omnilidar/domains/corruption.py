@@ -30,13 +30,13 @@ import json
 import sys
 from pathlib import Path
 
-from omnilidar.data.sensors import get_sensor
 from omnilidar.domains.builder import build_scan, scan_rng, write_points_kitti
 from omnilidar.domains.source import load_index, read_entry, split_entries
 from omnilidar.domains.spec import EffectSpec, SceneSpec
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
 from omnilidar.io.atomic import atomic_path
+from omnilidar.lidar.sensors import get_sensor
 
 # corruption name -> effect module name (EFFECTS in spec.py)
 CORRUPTIONS: dict[str, str] = {

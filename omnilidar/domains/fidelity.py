@@ -24,13 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains import ground as ground_estimation
 from omnilidar.domains.source import load_index, split_entries
 from omnilidar.domains.spec import effect_module
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 RANGE_BINS = np.linspace(0.0, 80.0, 41)  # 2 m
 INTENSITY_BINS = np.linspace(0.0, 1.0, 21)

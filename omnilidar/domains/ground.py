@@ -38,8 +38,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 # Raw SemanticKITTI ids that are ground: road, parking, sidewalk, other-ground,
 # lane-marking, terrain.

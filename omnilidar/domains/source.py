@@ -17,10 +17,10 @@ from functools import lru_cache
 from pathlib import Path
 
 from omnilidar.data.index import read_index
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
 from omnilidar.errors import InputError
 from omnilidar.io import kitti360, nuscenes, pi3det, semantickitti
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 LABEL_FORMATS = {
     "semantickitti": "semantickitti_raw",

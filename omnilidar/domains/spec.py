@@ -26,9 +26,9 @@ from types import ModuleType
 
 import numpy as np
 
-from omnilidar.data.sensors import SensorSpec, get_sensor
 from omnilidar.domains.effects import beam_missing, beam_reduction, fog, rain, snow, wet_ground
 from omnilidar.errors import InputError
+from omnilidar.lidar.sensors import SensorSpec, get_sensor
 
 # The effects are imported as a registry: a stage runs those its config names
 # (omnilidar.provenance, ``exclude``).

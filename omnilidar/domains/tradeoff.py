@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains.spec import effect_module
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 TIME_KEYS = ("time_s", "seconds", "apply_s")
 # The statistic each panel plots (the one the effect exists to produce).

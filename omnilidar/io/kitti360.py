@@ -10,9 +10,9 @@ from __future__ import annotations
 import operator
 from pathlib import Path
 
-from omnilidar.data.scan import Scan
 from omnilidar.errors import InputError
 from omnilidar.io import pointfile, semantickitti
+from omnilidar.lidar.scan import Scan
 
 SPLITS: dict[str, list[int]] = {"train": [3, 4, 5, 6, 7, 9, 10], "test": [0, 2]}
 SEQUENCES: tuple[int, ...] = (0, 2, 3, 4, 5, 6, 7, 9, 10)  # the 9 published drives

@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.data.boxes import box_corners
-from omnilidar.data.scan import Boxes
 from omnilidar.errors import InputError
 from omnilidar.io import pointfile
 from omnilidar.io.atomic import write_text_atomic
+from omnilidar.lidar.boxes import box_corners
+from omnilidar.lidar.scan import Boxes
 
 CALIB_SHAPES: dict[str, tuple[int, int]] = {
     "P0": (3, 4), "P1": (3, 4), "P2": (3, 4), "P3": (3, 4),

@@ -25,10 +25,10 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
-from omnilidar.data.scan import Boxes, Scan
 from omnilidar.errors import InputError
 from omnilidar.io import pointfile, semantickitti
 from omnilidar.io.atomic import write_bytes_atomic
+from omnilidar.lidar.scan import Boxes, Scan
 
 CLASSES: tuple[str, ...] = ("Car", "Pedestrian")
 CLASS_ALIASES: dict[str, str] = {"Vehicle": "Car"}

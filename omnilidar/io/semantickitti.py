@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
 from omnilidar.errors import InputError
 from omnilidar.io import pointfile
+from omnilidar.lidar.scan import Scan
 
 POINT_LAYOUT = "float32 x,y,z,remission"
 LABEL_LAYOUT = "uint32 semantic | instance << 16"

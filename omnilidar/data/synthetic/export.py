@@ -23,11 +23,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from omnilidar.data.scan import Boxes
 from omnilidar.data.synthetic import classes as C
 from omnilidar.data.synthetic.sequence import shard_entropy, simulate_sequence
 from omnilidar.errors import InputError
 from omnilidar.io.atomic import atomic_path
+from omnilidar.lidar.scan import Boxes
 
 DATASETS = ("semantickitti", "kitti360", "pi3det", "nuscenes")
 SEMANTICKITTI_TEST = tuple(f"{i:02d}" for i in range(11, 22))

@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnilidar.data.scan import Boxes, Scan
-from omnilidar.data.sensors import SensorSpec
 from omnilidar.data.synthetic import classes as C
 from omnilidar.data.synthetic import radiometry, raycast
 from omnilidar.data.synthetic.trajectory import SensorPose
+from omnilidar.lidar.scan import Boxes, Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 POINT_ORDERS = ("azimuth_major", "ring_major")
 

@@ -14,11 +14,11 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import get_sensor
 from omnilidar.data.synthetic.render import render_scan
 from omnilidar.data.synthetic.scene import Scene, generate_scene
 from omnilidar.data.synthetic.trajectory import route_poses
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import get_sensor
 
 
 def _stable_hash(text: str) -> int:

@@ -10,7 +10,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
+from omnilidar.lidar.scan import Scan
 
 RANGE_EDGES = (0.0, 5.0, 10.0, 20.0, 30.0, 50.0, 80.0, 120.0)
 ELEVATION_EDGES_DEG = tuple(float(e) for e in np.arange(-26.0, 5.0, 1.0))

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from omnilidar.data.sensors import SensorSpec
+from omnilidar.lidar.sensors import SensorSpec
 
 PLATFORMS = ("vehicle", "drone", "quadruped")
 

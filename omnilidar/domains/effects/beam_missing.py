@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 from omnilidar.domains.effects.beam_reduction import (
     DEFAULT_FIDELITY,
     FIDELITY_LEVELS,

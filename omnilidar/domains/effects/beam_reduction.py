@@ -24,10 +24,10 @@ from dataclasses import replace
 import numpy as np
 
 from omnilidar.data.rings import recover_rings
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains.effects.base import unchanged
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 NEEDS_GROUND = False
 

@@ -80,11 +80,11 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
 from omnilidar.errors import InputError
 from omnilidar.io.atomic import atomic_path
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 from omnilidar.provenance import code_hash
 
 NEEDS_GROUND = False

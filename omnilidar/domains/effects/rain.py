@@ -92,11 +92,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains.effects._mie import mie_efficiencies
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 NEEDS_GROUND = False
 

@@ -84,10 +84,10 @@ import time
 import numpy as np
 from scipy.special import gammainc, gamma as gamma_fn
 
-from omnilidar.data.scan import Scan
-from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
 from omnilidar.errors import InputError
+from omnilidar.lidar.scan import Scan
+from omnilidar.lidar.sensors import SensorSpec
 
 NEEDS_GROUND = False
 
