@@ -178,3 +178,18 @@ def test_spconv_backend_agrees_or_is_refused():
         assert list(layers[0].state_dict()) == ["weight"]
     for a, b in zip(*outs):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+
+
+def test_autocast_runs_the_products_in_the_autocast_dtype_and_backpropagates():
+    """AMP training (fp16 on CUDA; bf16 autocast here on CPU) must not mix dtypes inside the
+    gather-GEMM-scatter: the output is in the autocast dtype, gradients reach fp32 weights."""
+    x, _ = random_input(dtype=torch.float32)
+    conv = SubMConv3d(3, 4, 3)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = conv(x)
+    assert out.feats.dtype == torch.bfloat16
+    out.feats.float().square().sum().backward()
+    assert conv.weight.grad is not None and conv.weight.grad.dtype == torch.float32
+    assert torch.isfinite(conv.weight.grad).all() and x.feats.grad.dtype == torch.float32
+    reference = conv(SparseTensor(x.feats.detach(), x.coords, SHAPE, 2)).feats
+    torch.testing.assert_close(out.feats.float(), reference, rtol=0.05, atol=0.05)

@@ -81,12 +81,17 @@ def sparse_conv_features(feats: torch.Tensor, weight: torch.Tensor, kmap: Kernel
     ``weight`` is ``(C_out, kD, kH, kW, C_in)``; returns ``(N_out, C_out)``.
     """
     c_out, c_in = weight.shape[0], weight.shape[-1]
-    w = weight.reshape(c_out, -1, c_in).permute(1, 2, 0).to(feats.dtype)  # (K, C_in, C_out)
+    # Under autocast (AMP training on CUDA) the products run in the autocast dtype, as a
+    # dense layer's would; inside the function autocast is off so every operand agrees.
+    device_type = feats.device.type
+    dtype = torch.get_autocast_dtype(device_type) if torch.is_autocast_enabled(device_type) else feats.dtype
+    w = weight.reshape(c_out, -1, c_in).permute(1, 2, 0).to(dtype)  # (K, C_in, C_out)
     if w.shape[0] != kmap.kernel_volume:
         raise ValueError(f"weight has {w.shape[0]} kernel offsets, kernel map has {kmap.kernel_volume}")
     if feats.shape[0] != kmap.num_in:
         raise ValueError(f"kernel map expects {kmap.num_in} input rows, got {feats.shape[0]}")
-    return _GatherGemmScatter.apply(feats, w, kmap)
+    with torch.autocast(device_type, enabled=False):
+        return _GatherGemmScatter.apply(feats.to(dtype), w, kmap)
 
 
 @dataclass
