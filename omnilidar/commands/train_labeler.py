@@ -20,8 +20,9 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from omnilidar.config import validate
-    from omnilidar.downstream.seg.labeler import import_labeler, train_labeler
-    from omnilidar.downstream.seg.training import set_threads
+    from omnilidar.downstream.seg.label_spaces import get_label_space
+    from omnilidar.downstream.seg.labeler import LABEL_SPACE, import_labeler, labeler_records, training_settings
+    from omnilidar.downstream.seg.training import set_threads, train_segmentor
 
     set_threads(args.threads)
     section = validate({"labeler": dict(args.settings)}, "downstream.schema.yaml", source="--settings")["labeler"]
@@ -33,6 +34,10 @@ def run(args) -> int:
             from omnilidar.errors import InputError
 
             raise InputError(None, "--index is needed to train the labeler (no downstream.labeler.checkpoint given)")
-        summary = train_labeler(section, args.index, args.out, args.work_dir, args.seed)
+        real = labeler_records(args.index)
+        summary = train_segmentor(training_settings(section), section["backbone"], real, [],
+                                  get_label_space(LABEL_SPACE), args.out, args.work_dir, args.seed,
+                                  info={"role": "labeler", "train_scans": len(real)},
+                                  inputs={"index": args.index}, command="train-labeler")
         print(f"trained labeler: {summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")
     return 0

@@ -58,11 +58,10 @@ def training_settings(section: dict) -> dict:
     }
 
 
-def train_labeler(section: dict, index_path: str | Path, out: str | Path, work_dir: str | Path, seed: int) -> dict:
-    """Train the labeler on 100 % of the real SemanticKITTI training split."""
+def labeler_records(index_path: str | Path) -> list[dict]:
+    """The labeler's training scans: 100 % of the real SemanticKITTI training split."""
     from omnilidar.data.index import read_index
     from omnilidar.downstream.seg.dataset import records_from_entries
-    from omnilidar.downstream.seg.training import train_segmentor
 
     index = read_index(index_path)
     if index.get("dataset") != LABEL_SPACE:
@@ -70,6 +69,4 @@ def train_labeler(section: dict, index_path: str | Path, out: str | Path, work_d
     real = records_from_entries(index["splits"].get("train", []), LABEL_SPACE)
     if not real:
         raise InputError(index_path, "train split holds no scans")
-    return train_segmentor(training_settings(section), section["backbone"], real, [], get_label_space(LABEL_SPACE),
-                           out, work_dir, seed, info={"role": "labeler", "train_scans": len(real)},
-                           inputs={"index": index_path}, command="train-labeler")
+    return real
