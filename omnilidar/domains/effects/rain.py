@@ -96,6 +96,7 @@ from omnilidar.data.scan import Scan
 from omnilidar.data.sensors import SensorSpec
 from omnilidar.domains.effects._mie import mie_efficiencies
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
+from omnilidar.domains.point_checks import check_points
 from omnilidar.errors import InputError
 
 NEEDS_GROUND = False
@@ -420,9 +421,8 @@ def apply(
     n = len(scan)
     if rate == 0.0 or n == 0:
         return unchanged(scan, return_info)
+    check_points(scan, sensor.intensity_scale, sensor.name, who="rain")
     pts = scan.points
-    if not np.all(np.isfinite(pts)):
-        raise InputError(None, "rain: scan has NaN or infinite point values")
 
     scale = float(sensor.intensity_scale)
     xyz = pts[:, :3].astype(np.float64)
