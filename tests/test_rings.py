@@ -60,8 +60,11 @@ def test_synthetic_beams_exact():
 
 
 def test_non_finite_get_minus_one_and_small_scans_fall_back():
+    from omnilidar.data.rings import RingRecoveryWarning
+
     pts = np.array([[np.nan, 0, 0, 0], [10, 0, 0.0, 0], [0, 0, 0, 0]], np.float32)
-    rings = recover_rings(pts, HDL64)
+    with pytest.warns(RingRecoveryWarning):  # never silently
+        rings = recover_rings(pts, HDL64)
     assert rings[0] == -1
     assert 0 <= rings[1] <= 63 and 0 <= rings[2] <= 63
     # 10 m ahead at z = 10 * tan(-24.33 deg): the bottom beam

@@ -1,10 +1,14 @@
 """The domain builder: apply a scene spec to source scans, record what was drawn,
 and write a domain shard.
 
-Only what the scene calls for is computed: ground is estimated (once, on the
-source scan) only when an effect of the scene needs it, effects with zero
-severity (``"none"``) are skipped, and an empty scene returns the source scan
-object itself. The ground mask follows the points through the effect chain (lost
+Every source scan is checked once, at the entry (finite values, intensities in
+the sensor's scale; ``omnilidar.domains.point_checks``), naming its file. Only
+what the scene calls for is computed: ground is estimated (once, on the source
+scan) only when an effect of the scene needs it, effects with zero severity
+(``"none"``) or parameters that change nothing (``is_identity``, e.g. zero water)
+are skipped, and an empty scene returns the source scan object itself. Warnings
+raised while building a scan (e.g. ring recovery falling back to the nominal beam
+table) are re-emitted and kept in its record (``"warnings"``). The ground mask follows the points through the effect chain (lost
 points leave it, weather returns are not ground).
 
 Every random choice of a scan comes from one generator: the severity of each
@@ -19,6 +23,7 @@ from __future__ import annotations
 
 import json
 import sys
+import warnings
 from dataclasses import asdict
 from pathlib import Path
 
@@ -29,6 +34,7 @@ from omnilidar.lidar.scan import Scan
 from omnilidar.lidar.sensors import SensorSpec
 from omnilidar.domains import ground as ground_estimation
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL
+from omnilidar.domains.point_checks import check_points
 from omnilidar.domains.source import LABEL_FORMATS, load_index, read_entry, split_entries
 from omnilidar.domains.spec import NO_EFFECT, DomainSpec, SceneSpec, effect_module
 from omnilidar.errors import InputError
@@ -70,14 +76,24 @@ def _draw_steps(spec: SceneSpec, rng: np.random.Generator) -> list[dict]:
     return steps
 
 
+def _is_identity(module, params: dict) -> bool:
+    check = getattr(module, "is_identity", None)
+    return bool(check(params)) if check is not None else False
+
+
 def _run_steps(scan: Scan, steps: list[dict], sensor: SensorSpec) -> tuple[Scan, list[dict], bool]:
-    """Apply the recorded steps; returns (scan, per-step outcome, ground estimated)."""
+    """Apply the recorded steps; returns (scan, per-step outcome of the steps with
+    params, ground estimated). Steps whose params change nothing are not run."""
     active = [s for s in steps if s["params"] is not None]
     modules = [effect_module(s["name"]) for s in active]
-    needs_ground = any(m.NEEDS_GROUND for m in modules)
+    runs = [not _is_identity(m, s["params"]) for s, m in zip(active, modules)]
+    needs_ground = any(m.NEEDS_GROUND and run for m, run in zip(modules, runs))
     ground = ground_estimation.estimate_ground(scan, sensor) if needs_ground else None
     current, outcomes = scan, []
-    for step, module in zip(active, modules):
+    for step, module, run in zip(active, modules, runs):
+        if not run:
+            outcomes.append({k: 0 for k in _MASK_KEYS})
+            continue
         out, info = module.apply(
             current, step["params"], sensor, np.random.default_rng(step["seed"]),
             ground=ground if module.NEEDS_GROUND else None,
@@ -92,29 +108,49 @@ def _run_steps(scan: Scan, steps: list[dict], sensor: SensorSpec) -> tuple[Scan,
     return current, outcomes, needs_ground
 
 
-def build_scan(scan: Scan, spec: SceneSpec, sensor: SensorSpec, rng: np.random.Generator) -> tuple[Scan, dict]:
-    """Apply a scene spec to one scan.
+def _run_checked(scan: Scan, steps: list[dict], sensor: SensorSpec, source) -> tuple[Scan, list[dict], bool, list[str]]:
+    """Check the scan's points once, run the steps, and collect the warnings they
+    raise (re-emitted, and returned as messages for the record)."""
+    check_points(scan, sensor.intensity_scale, sensor.name, source)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out, outcomes, estimated = _run_steps(scan, steps, sensor)
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    where = f"{source}: " if source is not None else ""
+    return out, outcomes, estimated, [where + str(w.message) for w in caught]
+
+
+def build_scan(scan: Scan, spec: SceneSpec, sensor: SensorSpec, rng: np.random.Generator,
+               source: str | Path | None = None) -> tuple[Scan, dict]:
+    """Apply a scene spec to one scan (read from ``source``, named in errors and warnings).
 
     Returns the new scan and its record: ``{"effects": [{name, severity, params,
-    seed, fidelity, outcome}], "ground_estimated": bool}`` (JSON-serialisable).
-    An empty spec, or one whose every severity is "none", returns ``scan`` itself.
+    seed, fidelity, outcome}], "ground_estimated": bool}`` plus ``"warnings"``
+    (messages) when any were raised (JSON-serialisable). An empty spec, or one
+    whose every severity is "none", returns ``scan`` itself. InputError (naming
+    ``source``) when a point value is non-finite or an intensity is outside the
+    sensor's scale.
     """
     steps = _draw_steps(spec, rng)
-    out, outcomes, estimated = _run_steps(scan, steps, sensor)
+    out, outcomes, estimated, caught = _run_checked(scan, steps, sensor, source)
     active = [s for s in steps if s["params"] is not None]
     for step, outcome in zip(active, outcomes):
         step["outcome"] = outcome
-    return out, {"effects": steps, "ground_estimated": estimated}
+    record = {"effects": steps, "ground_estimated": estimated}
+    if caught:
+        record["warnings"] = caught
+    return out, record
 
 
-def rebuild_scan(scan: Scan, record: dict, sensor: SensorSpec) -> Scan:
+def rebuild_scan(scan: Scan, record: dict, sensor: SensorSpec, source: str | Path | None = None) -> Scan:
     """Regenerate a built scan from its source scan and its record (sidecar entry)."""
     try:
         steps = [{"name": s["name"], "params": s["params"], "seed": s["seed"], "fidelity": s.get("fidelity") or {}}
                  for s in record["effects"]]
     except (KeyError, TypeError):
         raise InputError(None, "record: needs 'effects' entries with name, params and seed") from None
-    return _run_steps(scan, steps, sensor)[0]
+    return _run_checked(scan, steps, sensor, source)[0]
 
 
 # ------------------------------------------------------------------ domain shards
@@ -178,7 +214,7 @@ def build_domain_shard(domain: DomainSpec, index_path: str | Path, shard: int, n
         for i in bar:
             entry = entries[i]
             scan = read_entry(index, entry, sensor)
-            built, record = build_scan(scan, domain.scene, sensor, scan_rng(seed, domain.id, i))
+            built, record = build_scan(scan, domain.scene, sensor, scan_rng(seed, domain.id, i), entry["points"])
             name = f"{i:06d}"
             np.savez(tmp / "range" / f"{name}.npz", image=to_range_image(built, spec))
             write_points_kitti(tmp / "velodyne" / f"{name}.bin", built)

@@ -83,7 +83,8 @@ def build_corrupted_set(corruption: str, severity: str, index_path: str | Path, 
                    disable=not progress, mininterval=2.0)
         for i, entry in bar:
             scan = read_entry(index, entry, sensor)
-            built, record = build_scan(scan, scene, sensor, scan_rng(seed, CORRUPTION_STREAM, c_id, s_id, i))
+            built, record = build_scan(scan, scene, sensor, scan_rng(seed, CORRUPTION_STREAM, c_id, s_id, i),
+                                       entry["points"])
             seq = str(entry.get("sequence", "08"))
             frame = str(entry.get("frame", f"{i:06d}"))
             seq_dir = tmp / "sequences" / seq

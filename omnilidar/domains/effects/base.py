@@ -13,6 +13,9 @@ An effect module ``omnilidar.domains.effects.<name>`` defines:
 ``DEFAULT_FIDELITY: dict`` and ``FIDELITY_LEVELS: dict[str, list]``
     Numerical knobs (samples per beam, integral resolution, ...) with the chosen
     defaults and the candidate values for the accuracy/time study.
+``is_identity(params) -> bool`` (optional)
+    True when ``apply`` with these parameters returns its input (e.g. zero water):
+    the builder then skips the step and computes nothing for it (no ground).
 ``apply(scan, params, sensor, rng, *, ground=None, fidelity=None) -> Scan``
     A pure function: returns a new Scan, never mutates its input. Kept points stay
     in input order; labels, instance ids and rings follow their points; boxes are

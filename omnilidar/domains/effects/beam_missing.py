@@ -8,9 +8,11 @@ without replacement from the ``rng`` handed to :func:`apply` (so the builder's
 recorded seed regenerates them) and reported in the info dict
 (``dropped_beams``), which the builder copies into the sidecar.
 
-Differences from the anchor: rings come from calibrated elevation-based ring
-recovery (``omnilidar.data.rings``) instead of counting azimuth wraps in the
-file's point order, which breaks on any scan not stored ring by ring; point
+Differences from the anchor: rings come from ring recovery
+(``omnilidar.data.rings``: the file's firing order only when it checks out,
+else a per-scan calibration of the beam lines; ``ring_method`` in the info
+dict) instead of counting azimuth wraps unchecked, which breaks on any scan
+not stored ring by ring; point
 order and labels are kept (dropped points take their labels with them).
 """
 
@@ -68,7 +70,7 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     """Drop ``round(drop_fraction * num_beams)`` beams chosen at random.
 
     ``drop_fraction = 0`` returns the input itself. With ``return_info`` also
-    returns {"lost", "changed", "weather", "dropped_beams" (sorted list)}.
+    returns {"lost", "changed", "weather", "ring_method", "dropped_beams" (sorted list)}.
     """
     del ground
     f = _fraction(params)
@@ -79,8 +81,8 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     dropped = np.sort(rng.choice(sensor.num_beams, size=count, replace=False))
     keep = np.ones(sensor.num_beams, bool)
     keep[dropped] = False
-    rings = scan_rings(scan, sensor, calibrate)
-    result = drop_rings(scan, rings, keep, return_info)
+    rings, method = scan_rings(scan, sensor, calibrate)
+    result = drop_rings(scan, rings, keep, return_info, method)
     if not return_info:
         return result
     out, info = result

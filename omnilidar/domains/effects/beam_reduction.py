@@ -3,16 +3,18 @@
 A thin effect around :func:`omnilidar.data.rings.beam_reduce` with the effect
 interface of ``base.py``, so a scene spec can list it beside the weather effects.
 Rings come from ``scan.ring`` when the reader provides them (nuScenes, the
-synthetic world before export) and from elevation-based ring recovery otherwise
-(KITTI ``.bin`` files carry no ring). Kept points stay in input order with their
+synthetic world before export) and from ring recovery otherwise (KITTI ``.bin``
+files carry no ring, but are stored in firing order): the info dict says which
+method found them (``ring_method``, copied into the domain sidecar), and a
+fallback to the nominal beam table warns. Kept points stay in input order with their
 labels; ``keep_every = 1`` returns the input itself.
 
 Severities: ``half`` keeps even ring ids (64 -> 32 beams, the paper's Beam-32),
 ``quarter`` keeps every fourth ring (64 -> 16).
 
-The numerical knob is ring recovery itself: ``calibrate`` (per-scan Hough
-calibration of the beam angles and laser offsets, the default) against nominal
-data-sheet binning; the accuracy/time curve measures how many points change ring
+The numerical knob is ring recovery itself: ``calibrate`` (firing order, else
+per-scan Hough calibration of the beam angles and laser offsets, the default)
+against nominal data-sheet binning; the accuracy/time curve measures how many points change ring
 (and so change keep/drop) without calibration, and what calibration costs.
 """
 
@@ -23,7 +25,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from omnilidar.data.rings import recover_rings
+from omnilidar.data.rings import recover_rings, ring_recovery
 from omnilidar.domains.effects.base import unchanged
 from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Scan
@@ -65,23 +67,28 @@ def fidelity_calibrates(fidelity: dict | None) -> bool:
     return bool(fid["calibrate"])
 
 
-def scan_rings(scan: Scan, sensor: SensorSpec, calibrate: bool = True) -> np.ndarray:
-    """Ring id per point: the scan's own rings when present, else recovered."""
+def scan_rings(scan: Scan, sensor: SensorSpec, calibrate: bool = True) -> tuple[np.ndarray, str]:
+    """Ring id per point and how it was found: the scan's own rings ("scan") when
+    present, else :func:`omnilidar.data.rings.ring_recovery`."""
     if scan.ring is not None:
-        return scan.ring
-    return recover_rings(scan.points, sensor, calibrate=calibrate)
+        return scan.ring, "scan"
+    return ring_recovery(scan.points, sensor, calibrate=calibrate)
 
 
-def drop_rings(scan: Scan, rings: np.ndarray, keep: np.ndarray, return_info: bool):
+def drop_rings(scan: Scan, rings: np.ndarray, keep: np.ndarray, return_info: bool, method: str | None = None):
     """Keep the points whose ring is selected by ``keep`` (bool per ring id);
-    points with an unknown ring (-1) are dropped. Rings follow the kept points."""
+    points with an unknown ring (-1) are dropped. Rings follow the kept points.
+    The info dict carries ``ring_method`` when ``method`` is given."""
     known = (rings >= 0) & (rings < len(keep))
     mask = np.zeros(len(scan), bool)
     mask[known] = keep[rings[known]]
     out = replace(scan, ring=rings).select(mask)
     if not return_info:
         return out
-    return out, {"lost": ~mask, "changed": np.zeros(len(scan), bool), "weather": np.zeros(len(out), bool)}
+    info = {"lost": ~mask, "changed": np.zeros(len(scan), bool), "weather": np.zeros(len(out), bool)}
+    if method is not None:
+        info["ring_method"] = method
+    return out, info
 
 
 def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator, *,
@@ -89,16 +96,17 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     """Keep rings whose id is a multiple of ``params["keep_every"]``.
 
     ``ground`` and ``rng`` are unused. With ``return_info`` also returns
-    {"lost": (N_in,), "changed": (N_in,) all False, "weather": (N_out,) all False}.
+    {"lost": (N_in,), "changed": (N_in,) all False, "weather": (N_out,) all False,
+    "ring_method": see :func:`scan_rings`}.
     """
     del ground, rng
     k = _keep_every(params)
     calibrate = fidelity_calibrates(fidelity)
     if k == 1 or len(scan) == 0:
         return unchanged(scan, return_info)
-    rings = scan_rings(scan, sensor, calibrate)
+    rings, method = scan_rings(scan, sensor, calibrate)
     keep = np.arange(sensor.num_beams) % k == 0
-    return drop_rings(scan, rings, keep, return_info)
+    return drop_rings(scan, rings, keep, return_info, method)
 
 
 def accuracy_time_curve(scan: Scan, sensor: SensorSpec, severity: str, seeds, repeats: int = 1) -> list[dict]:

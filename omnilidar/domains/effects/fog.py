@@ -81,6 +81,7 @@ from pathlib import Path
 import numpy as np
 
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
+from omnilidar.domains.point_checks import check_points
 from omnilidar.errors import InputError
 from omnilidar.io.atomic import atomic_path
 from omnilidar.lidar.scan import Scan
@@ -355,12 +356,9 @@ def apply(
     n = len(scan)
     if alpha == 0.0 or n == 0:
         return unchanged(scan, return_info)
+    check_points(scan, scan.intensity_scale, "scan's", who="fog")
     pts = scan.points
-    if not np.all(np.isfinite(pts)):
-        raise InputError(None, "fog: scan has NaN or infinite coordinates or intensities")
     scale = float(scan.intensity_scale)
-    if np.any(pts[:, 3] < 0):
-        raise InputError(None, "fog: scan has negative intensities")
 
     xyz = pts[:, :3].astype(np.float64)
     r2 = np.einsum("ij,ij->i", xyz, xyz)

@@ -94,6 +94,7 @@ import numpy as np
 
 from omnilidar.domains.effects._mie import mie_efficiencies
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
+from omnilidar.domains.point_checks import check_points
 from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Scan
 from omnilidar.lidar.sensors import SensorSpec
@@ -420,9 +421,8 @@ def apply(
     n = len(scan)
     if rate == 0.0 or n == 0:
         return unchanged(scan, return_info)
+    check_points(scan, sensor.intensity_scale, sensor.name, who="rain")
     pts = scan.points
-    if not np.all(np.isfinite(pts)):
-        raise InputError(None, "rain: scan has NaN or infinite point values")
 
     scale = float(sensor.intensity_scale)
     xyz = pts[:, :3].astype(np.float64)
