@@ -26,6 +26,11 @@ onsuccess:
         print("Results: " + ", ".join(produced) + " (figures in results/figures/)")
 
 
+onerror:
+    # The failed jobs' own error lines (one clear line per bad input) on the terminal.
+    report_failed_jobs(log)
+
+
 rule all:
     default_target: True
     input:

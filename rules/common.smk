@@ -79,6 +79,28 @@ def _report_version_changes():
 _report_version_changes()
 
 
+def report_failed_jobs(snakemake_logs):
+    """Print each failed job's error line(s), read from its own log, on the terminal
+    (Snakemake itself only names the log). Used by the Snakefile's onerror handler,
+    which gets the run's log file(s)."""
+    text = ""
+    for name in [snakemake_logs] if isinstance(snakemake_logs, str) else list(snakemake_logs or []):
+        try:
+            with open(name) as fh:
+                text += fh.read()
+        except OSError:
+            continue
+    for path in dict.fromkeys(re.findall(r"log: (\S+) \(check log file", text)):
+        try:
+            with open(path) as fh:
+                lines = [line.rstrip() for line in fh if line.strip()]
+        except OSError:
+            continue
+        errors = [line for line in lines if ": error: " in line] or lines[-1:]
+        for line in errors[-3:]:
+            print(f"{path}: {line}", file=sys.stderr)
+
+
 def record_versions():
     """Called on success: the versions the outputs now on disk were made with."""
     os.makedirs(os.path.dirname(VERSIONS_RECORD), exist_ok=True)

@@ -94,3 +94,17 @@ def test_version_changes_are_reported_and_rerun_only_where_asked(real_root_workf
         "index_dataset": 1, "make_subset": 1}
     asked.write_text(yaml.safe_dump(dict(doc, rerun_on_version_change=["train-generator"])))
     assert planned_jobs(wd, INDEX, "--configfile", str(asked)) == {}
+
+
+@pytest.mark.slow
+def test_a_failed_stage_shows_its_error_line_on_the_terminal(real_root_workflow):
+    """A truncated .bin under a real root: the index stage fails, and the terminal shows the one
+    line naming the file and the problem (not only the path of the job's log)."""
+    wd, root, cfg = real_root_workflow
+    bad = root / "sequences" / "00" / "velodyne" / "000001.bin"
+    bad.write_bytes(bad.read_bytes()[:-6])
+    out = snakemake(wd, INDEX, *cfg, check=False)
+    assert out.returncode != 0
+    terminal = out.stdout + out.stderr
+    assert "logs/index/semantickitti.log: omnilidar index-dataset: error:" in terminal
+    assert f"{bad}" in terminal and "is not a positive multiple of 16" in terminal
