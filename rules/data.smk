@@ -28,8 +28,7 @@ rule synthesize_semantickitti:
     conda:
         ENV
     resources:
-        mem_mb=2000,
-        runtime=30,
+        **job_resources("synthesize"),
     shell:
         SYNTHESIZE
 
@@ -52,8 +51,7 @@ rule synthesize_kitti360:
     conda:
         ENV
     resources:
-        mem_mb=2000,
-        runtime=30,
+        **job_resources("synthesize"),
     shell:
         SYNTHESIZE
 
@@ -76,8 +74,7 @@ rule synthesize_pi3det:
     conda:
         ENV
     resources:
-        mem_mb=2000,
-        runtime=30,
+        **job_resources("synthesize"),
     shell:
         SYNTHESIZE
 
@@ -100,8 +97,7 @@ rule synthesize_nuscenes:
     conda:
         ENV
     resources:
-        mem_mb=2000,
-        runtime=30,
+        **job_resources("synthesize"),
     shell:
         SYNTHESIZE
 
@@ -130,8 +126,7 @@ rule index_dataset:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("index_dataset"),
     shell:
         "omnilidar index-dataset {wildcards.dataset} --root {params.root:q} --source {params.source} "
         "--out {output} > {log} 2>&1"
@@ -156,8 +151,7 @@ rule data_summary:
     conda:
         ENV
     resources:
-        mem_mb=4000,
-        runtime=30,
+        **job_resources("data_summary"),
     shell:
         "omnilidar summarize-data {input} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} > {log} 2>&1"

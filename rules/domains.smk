@@ -41,8 +41,7 @@ rule build_domain:
     conda:
         ENV
     resources:
-        mem_mb=3000,
-        runtime=60,
+        **job_resources("build_domain"),
     shell:
         "omnilidar build-domain {wildcards.domain} --index {input} --shard {wildcards.shard} "
         "--num-shards {params.num_shards} --settings {params.settings:q} --seed {params.seed} "
@@ -65,8 +64,7 @@ rule domains_index:
     conda:
         ENV
     resources:
-        mem_mb=500,
-        runtime=5,
+        **job_resources("domains_index"),
     shell:
         "omnilidar domains-index --settings {params.settings:q} --out {output} {input} > {log} 2>&1"
 
@@ -91,8 +89,7 @@ rule build_corrupted:
     conda:
         ENV
     resources:
-        mem_mb=3000,
-        runtime=60,
+        **job_resources("build_corrupted"),
     shell:
         "omnilidar build-corrupted {wildcards.corruption} {wildcards.severity} --index {input} "
         "--settings {params.settings:q} --seed {params.seed} --out {output} > {log} 2>&1"
@@ -117,8 +114,7 @@ rule domain_fidelity:
     conda:
         ENV
     resources:
-        mem_mb=4000,
-        runtime=30,
+        **job_resources("domain_fidelity"),
     shell:
         "omnilidar domain-fidelity --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} {input} > {log} 2>&1"
@@ -142,8 +138,7 @@ rule effects_tradeoff:
     conda:
         ENV
     resources:
-        mem_mb=4000,
-        runtime=60,
+        **job_resources("effects_tradeoff"),
     shell:
         "omnilidar effects-tradeoff --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} {input} > {log} 2>&1"

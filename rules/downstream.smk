@@ -45,8 +45,7 @@ rule make_subset:
     conda:
         ENV
     resources:
-        mem_mb=500,
-        runtime=5,
+        **job_resources("make_subset"),
     shell:
         "omnilidar make-subset --index {input} --split {params.split} --percent {wildcards.pct} "
         "--out {output} > {log} 2>&1"
@@ -73,9 +72,7 @@ rule train_labeler:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        **job_resources("train_labeler"),
     shell:
         "omnilidar train-labeler --index {input.index} --settings {params.settings:q} --seed {params.seed} "
         "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
@@ -101,9 +98,7 @@ rule pseudo_label:
         ENV
     threads: 1
     resources:
-        mem_mb=4000,
-        runtime=60,
-        gpu=1,
+        **job_resources("pseudo_label"),
     shell:
         "omnilidar pseudo-label --labeler {input.labeler} --samples {input.samples} "
         "--settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
@@ -132,9 +127,7 @@ rule train_supervised:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        **job_resources("train_supervised"),
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
@@ -169,9 +162,7 @@ rule train_gda:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        **job_resources("train_gda"),
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
@@ -208,9 +199,7 @@ rule train_gda_curve:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        **job_resources("train_gda_curve"),
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
@@ -243,9 +232,7 @@ rule evaluate_segmentor:
         ENV
     threads: 1
     resources:
-        mem_mb=4000,
-        runtime=60,
-        gpu=1,
+        **job_resources("evaluate_segmentor"),
     shell:
         "omnilidar evaluate-segmentor --checkpoint {input.checkpoint} --index {input.index} --split val "
         "{params.sets} --settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
@@ -276,8 +263,7 @@ rule semkitti_result:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_result"),
     shell:
         GDA_RESULT
 
@@ -305,8 +291,7 @@ rule semkittic_result:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_result"),
     shell:
         GDA_RESULT
 
@@ -336,8 +321,7 @@ rule nusc_beam32_result:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_result"),
     shell:
         GDA_RESULT
 
@@ -367,8 +351,7 @@ rule semanticstf_result:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_result"),
     shell:
         GDA_RESULT_STANDIN
 
@@ -396,8 +379,7 @@ rule gda_curve:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_curve"),
     shell:
         "omnilidar gda-curve --evaluations {input.evaluations} --samples {input.samples} "
         "--pseudo-labels {input.pseudo} "

@@ -40,9 +40,7 @@ rule train_extractor:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=8000,
-        runtime=6 * 60,
+        **job_resources("train_extractor"),
     shell:
         "omnilidar train-extractor --extractor {wildcards.extractor} --index {input} "
         "--settings {params.settings:q} --range-image {params.range_image:q} "
@@ -70,11 +68,9 @@ rule train_single_domain:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=32000,
-        runtime=24 * 60,
+        **job_resources("train_single_domain"),
     shell:
-        "omnilidar train-generator --domains {input.domains} --prompts {input.prompts} "
+        generator_launcher() + " train-generator --domains {input.domains} --prompts {input.prompts} "
         "--preset single_domain --settings {params.settings:q} --seed {params.seed} "
         "--work-dir {params.work_dir} --out {output} > {log} 2>&1"
 
@@ -104,9 +100,7 @@ rule generation_quality:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=12 * 60,
+        **job_resources("generation_quality"),
     shell:
         "omnilidar generation-quality --domains {input.domains} --prompts {input.prompts} --full {input.full} "
         "{params.baselines} {params.weights} --settings {params.settings:q} --seed {params.seed} "
@@ -137,9 +131,7 @@ rule ablation_table:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=12 * 60,
+        **job_resources("ablation_table"),
     shell:
         "omnilidar ablation-table --domains {input.domains} --prompts {input.prompts} {params.checkpoints} "
         "{params.weights} --settings {params.settings:q} --seed {params.seed} "
@@ -170,9 +162,7 @@ rule kitti360_generation:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=6 * 60,
+        **job_resources("kitti360_generation"),
     shell:
         "omnilidar kitti360-generation --index {input.index} --prompts {input.prompts} --full {input.full} "
         "--baseline {input.baseline} {params.weights} --settings {params.settings:q} --seed {params.seed} "
@@ -205,9 +195,7 @@ rule sampler_tradeoff:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=12 * 60,
+        **job_resources("sampler_tradeoff"),
     shell:
         "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
         "--checkpoint {input.checkpoint} {params.weights} --effects {input.effects} "
@@ -237,8 +225,7 @@ rule generator_evidence:
     conda:
         ENV
     resources:
-        mem_mb=8000,
-        runtime=60,
+        **job_resources("generator_evidence"),
     shell:
         "omnilidar generator-evidence --domains {input.domains} --prompts {input.prompts} "
         "--checkpoint {input.checkpoint} --settings {params.settings:q} --seed {params.seed} "
