@@ -13,6 +13,7 @@ include: "rules/resources.smk"
 include: "rules/data.smk"
 include: "rules/domains.smk"
 include: "rules/generator.smk"
+include: "rules/evaluation_sets.smk"
 include: "rules/evaluation.smk"
 include: "rules/downstream.smk"
 

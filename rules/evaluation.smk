@@ -4,7 +4,6 @@
 # the study's downstream panel reads results/gda_curve.json (rules/downstream.smk).
 
 EXTRACTORS = f"{DATA}/extractors"
-SINGLE_DOMAIN = f"{DATA}/generator_single"
 EVAL = config["evaluation"]
 # The generator's domain labels (prompt pools), e.g. Vehicle, WetGround.
 GEN_DOMAINS = list(config["generator"]["prompts"])
@@ -17,6 +16,49 @@ K360_WEIGHTS = extractor_weights(EVAL["kitti360"]["metrics"])
 TRADEOFF_WEIGHTS = extractor_weights([EVAL["tradeoff"]["feature_metric"]])
 # Settings a stage does not read stay out of its params, so changing them reruns nothing.
 TABLES = ("generation_quality", "ablation", "kitti360", "tradeoff", "evidence")
+
+
+# Generated sets of the tables: sample shard jobs (rules/evaluation_sets.smk).
+GQ_SETS = table_sets({"full": "full", "baseline": lambda d: f"baseline-{d}"}, GEN_DOMAINS)
+ABL_SETS = table_sets({p: p for p in EVAL["ablation"]["presets"]}, GEN_DOMAINS)
+K360_DOMAIN = EVAL["kitti360"]["domain"]
+K360_SETS = generated_sets({
+    "full": ("full", K360_DOMAIN, EVAL["sampler"], EVAL["steps"], EVAL["scans_per_set"]),
+    "baseline": (f"baseline-{K360_DOMAIN}", K360_DOMAIN, EVAL["sampler"], EVAL["steps"], EVAL["scans_per_set"]),
+})
+TRADEOFF_SETS = generated_sets({f"{s}-{n}/{d}": ("full", d, s, n, EVAL["tradeoff"]["scans"])
+                                for s, steps in EVAL["tradeoff"]["samplers"].items() for n in steps
+                                for d in (EVAL["tradeoff"]["domains"] or GEN_DOMAINS)})
+
+
+rule sample_eval:
+    """One shard of a generated set of the generation tables (a preset or baseline, sampler, steps)."""
+    input:
+        checkpoint=lambda w: eval_checkpoint(w.model),
+        prompts=rules.encode_prompts.output,
+    output:
+        directory(f"{DATA}/eval_samples/{{model}}/{{sampler}}_{{steps}}/{{domain}}/shard_{{shard}}"),
+    wildcard_constraints:
+        model=r"[a-z_]+|baseline-\w+",
+        sampler="ddpm|ddim|dpmpp_2m",
+        steps=r"\d+",
+        shard=r"\d+",
+    params:
+        settings=lambda w: eval_sampling_settings(w.sampler, w.steps),
+        seed=config["seed"],
+        code=code("sample"),
+    log:
+        "logs/eval_samples/{model}/{sampler}_{steps}/{domain}_{shard}.log",
+    benchmark:
+        "benchmarks/out/eval_samples/{model}/{sampler}_{steps}/{domain}_{shard}.tsv"
+    conda:
+        ENV
+    resources:
+        **job_resources("sample_eval"),
+    shell:
+        "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
+        "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "
+        "--seed {params.seed} --out {output} > {log} 2>&1"
 
 
 rule train_extractor:
@@ -83,6 +125,7 @@ rule generation_quality:
         full=f"{GENERATOR}/full/model.pt",
         baselines=expand(f"{SINGLE_DOMAIN}/{{domain}}/model.pt", domain=GEN_DOMAINS),
         weights=list(GQ_WEIGHTS.values()),
+        samples=[d for dirs in GQ_SETS.values() for d in dirs],
     output:
         json="results/generation_quality.json",
         markdown=report("results/generation_quality.md", caption="../workflow/report/generation_quality.rst", category="Generation"),
@@ -92,6 +135,7 @@ rule generation_quality:
         seed=config["seed"],
         baselines=" ".join(f"--baseline {d}={SINGLE_DOMAIN}/{d}/model.pt" for d in GEN_DOMAINS),
         weights=weights_args(GQ_WEIGHTS),
+        samples=sets_args(GQ_SETS),
         code=code("generation-quality"),
     log:
         "logs/evaluation/generation_quality.log",
@@ -103,7 +147,7 @@ rule generation_quality:
         **job_resources("generation_quality"),
     shell:
         "omnilidar generation-quality --domains {input.domains} --prompts {input.prompts} --full {input.full} "
-        "{params.baselines} {params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "{params.baselines} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -114,6 +158,7 @@ rule ablation_table:
         prompts=rules.encode_prompts.output,
         checkpoints=expand(f"{GENERATOR}/{{preset}}/model.pt", preset=EVAL["ablation"]["presets"]),
         weights=list(ABL_WEIGHTS.values()),
+        samples=[d for dirs in ABL_SETS.values() for d in dirs],
     output:
         json="results/ablation.json",
         markdown=report("results/ablation.md", caption="../workflow/report/ablation.rst", category="Generation"),
@@ -123,6 +168,7 @@ rule ablation_table:
         seed=config["seed"],
         checkpoints=" ".join(f"--checkpoint {p}={GENERATOR}/{p}/model.pt" for p in EVAL["ablation"]["presets"]),
         weights=weights_args(ABL_WEIGHTS),
+        samples=sets_args(ABL_SETS),
         code=code("ablation-table"),
     log:
         "logs/evaluation/ablation.log",
@@ -134,7 +180,7 @@ rule ablation_table:
         **job_resources("ablation_table"),
     shell:
         "omnilidar ablation-table --domains {input.domains} --prompts {input.prompts} {params.checkpoints} "
-        "{params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "{params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -146,6 +192,7 @@ rule kitti360_generation:
         full=f"{GENERATOR}/full/model.pt",
         baseline=f"{SINGLE_DOMAIN}/{EVAL['kitti360']['domain']}/model.pt",
         weights=list(K360_WEIGHTS.values()),
+        samples=[d for dirs in K360_SETS.values() for d in dirs],
     output:
         json="results/kitti360_generation.json",
         markdown=report("results/kitti360_generation.md", caption="../workflow/report/kitti360_generation.rst", category="Generation"),
@@ -154,6 +201,7 @@ rule kitti360_generation:
         settings=eval_settings("kitti360"),
         seed=config["seed"],
         weights=weights_args(K360_WEIGHTS),
+        samples=sets_args(K360_SETS),
         code=code("kitti360-generation"),
     log:
         "logs/evaluation/kitti360_generation.log",
@@ -165,7 +213,7 @@ rule kitti360_generation:
         **job_resources("kitti360_generation"),
     shell:
         "omnilidar kitti360-generation --index {input.index} --prompts {input.prompts} --full {input.full} "
-        "--baseline {input.baseline} {params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "--baseline {input.baseline} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -180,6 +228,7 @@ rule sampler_tradeoff:
         effects="results/effects_tradeoff.json",
         curve="results/gda_curve.json",
         weights=list(TRADEOFF_WEIGHTS.values()),
+        samples=[d for dirs in TRADEOFF_SETS.values() for d in dirs],
     output:
         json="results/tradeoff.json",
         figure=report("results/figures/tradeoff.png", caption="../workflow/report/tradeoff.rst", category="Accuracy vs time"),
@@ -187,6 +236,7 @@ rule sampler_tradeoff:
         settings=eval_settings("tradeoff"),
         seed=config["seed"],
         weights=weights_args(TRADEOFF_WEIGHTS),
+        samples=sets_args(TRADEOFF_SETS),
         code=code("sampler-tradeoff"),
     log:
         "logs/evaluation/tradeoff.log",
@@ -198,7 +248,7 @@ rule sampler_tradeoff:
         **job_resources("sampler_tradeoff"),
     shell:
         "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
-        "--checkpoint {input.checkpoint} {params.weights} --effects {input.effects} "
+        "--checkpoint {input.checkpoint} {params.weights} {params.samples} --effects {input.effects} "
         "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} > {log} 2>&1"
 
