@@ -9,9 +9,11 @@ configfile: "config/config.yaml"
 
 
 include: "rules/common.smk"
+include: "rules/resources.smk"
 include: "rules/data.smk"
 include: "rules/domains.smk"
 include: "rules/generator.smk"
+include: "rules/evaluation_sets.smk"
 include: "rules/evaluation.smk"
 include: "rules/downstream.smk"
 

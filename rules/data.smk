@@ -30,8 +30,7 @@ rule synthesize:
     conda:
         ENV
     resources:
-        mem_mb=2000,
-        runtime=30,
+        **job_resources("synthesize"),
     shell:
         SYNTHESIZE
 
@@ -60,8 +59,7 @@ rule index_dataset:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("index_dataset"),
     shell:
         "omnilidar index-dataset {wildcards.dataset} --root {params.root:q} --source {params.source} "
         "--out {output} > {log} 2>&1"
@@ -86,8 +84,7 @@ rule data_summary:
     conda:
         ENV
     resources:
-        mem_mb=4000,
-        runtime=30,
+        **job_resources("data_summary"),
     shell:
         "omnilidar summarize-data {input} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} > {log} 2>&1"

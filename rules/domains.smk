@@ -45,8 +45,7 @@ rule build_domain:
     conda:
         ENV
     resources:
-        mem_mb=3000,
-        runtime=60,
+        **job_resources("build_domain"),
     shell:
         "omnilidar build-domain {wildcards.domain} --index {input} --shard {wildcards.shard} "
         "--num-shards {params.num_shards} --settings {params.settings:q} --seed {params.seed} "
@@ -69,8 +68,7 @@ rule domains_index:
     conda:
         ENV
     resources:
-        mem_mb=500,
-        runtime=5,
+        **job_resources("domains_index"),
     shell:
         "omnilidar domains-index --settings {params.settings:q} --out {output} {input} > {log} 2>&1"
 
@@ -95,8 +93,7 @@ rule build_corrupted:
     conda:
         ENV
     resources:
-        mem_mb=3000,
-        runtime=60,
+        **job_resources("build_corrupted"),
     shell:
         "omnilidar build-corrupted {wildcards.corruption} {wildcards.severity} --index {input} "
         "--settings {params.settings:q} --seed {params.seed} --out {output} > {log} 2>&1"
@@ -123,8 +120,7 @@ rule domain_fidelity:
     conda:
         ENV
     resources:
-        mem_mb=4000,
-        runtime=30,
+        **job_resources("domain_fidelity"),
     shell:
         "omnilidar domain-fidelity --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} {params.index} {input.scans} > {log} 2>&1"
@@ -150,8 +146,7 @@ rule effects_tradeoff:
     conda:
         ENV
     resources:
-        mem_mb=4000,
-        runtime=60,
+        **job_resources("effects_tradeoff"),
     shell:
         "omnilidar effects-tradeoff --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} {params.index} {input.scans} > {log} 2>&1"

@@ -40,8 +40,7 @@ rule make_subset:
     conda:
         ENV
     resources:
-        mem_mb=500,
-        runtime=5,
+        **job_resources("make_subset"),
     shell:
         "omnilidar make-subset --index {input} --split {params.split} --percent {wildcards.pct} "
         "--out {output} > {log} 2>&1"
@@ -68,9 +67,7 @@ rule train_labeler:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        **job_resources("train_labeler"),
     shell:
         "omnilidar train-labeler --index {input.index} --settings {params.settings:q} --seed {params.seed} "
         "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
@@ -96,9 +93,7 @@ rule pseudo_label:
         ENV
     threads: 1
     resources:
-        mem_mb=4000,
-        runtime=60,
-        gpu=1,
+        **job_resources("pseudo_label"),
     shell:
         "omnilidar pseudo-label --labeler {input.labeler} --samples {input.samples} "
         "--settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
@@ -127,9 +122,7 @@ rule train_supervised:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        **job_resources("train_supervised"),
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
@@ -164,9 +157,7 @@ rule train_gda:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        **job_resources("train_gda"),
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
@@ -203,9 +194,7 @@ rule train_gda_curve:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        **job_resources("train_gda_curve"),
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
@@ -238,9 +227,7 @@ rule evaluate_segmentor:
         ENV
     threads: 1
     resources:
-        mem_mb=4000,
-        runtime=60,
-        gpu=1,
+        **job_resources("evaluate_segmentor"),
     shell:
         "omnilidar evaluate-segmentor --checkpoint {input.checkpoint} --index {input.index} --split val "
         "{params.sets} --settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
@@ -271,8 +258,7 @@ rule semkitti_result:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_result"),
     shell:
         GDA_RESULT
 
@@ -300,8 +286,7 @@ rule semkittic_result:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_result"),
     shell:
         GDA_RESULT
 
@@ -331,8 +316,7 @@ rule nusc_beam32_result:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_result"),
     shell:
         GDA_RESULT
 
@@ -362,8 +346,7 @@ rule semanticstf_result:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_result"),
     shell:
         GDA_RESULT_STANDIN
 
@@ -391,8 +374,7 @@ rule gda_curve:
     conda:
         ENV
     resources:
-        mem_mb=1000,
-        runtime=10,
+        **job_resources("gda_curve"),
     shell:
         "omnilidar gda-curve --evaluations {input.evaluations} --samples {input.samples} "
         "--pseudo-labels {input.pseudo} "

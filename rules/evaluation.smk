@@ -3,8 +3,8 @@
 # the generator evidence. Needs rules/generator.smk and rules/domains.smk included first;
 # the study's downstream panel reads results/gda_curve.json (rules/downstream.smk).
 
-# EXTRACTORS, EVAL, METRIC_KIND and TABLES are in rules/common.smk, whose helpers read them.
-SINGLE_DOMAIN = f"{DATA}/generator_single"
+# EXTRACTORS, EVAL, METRIC_KIND and TABLES are in rules/common.smk, whose helpers read them;
+# SINGLE_DOMAIN and the generated sets' helpers in rules/evaluation_sets.smk.
 # The generator's domain labels (prompt pools), e.g. Vehicle, WetGround.
 GEN_DOMAINS = list(config["generator"]["prompts"])
 
@@ -13,6 +13,49 @@ GQ_WEIGHTS = extractor_weights(EVAL["generation_quality"]["metrics"])
 ABL_WEIGHTS = extractor_weights(EVAL["ablation"]["metrics"])
 K360_WEIGHTS = extractor_weights(EVAL["kitti360"]["metrics"])
 TRADEOFF_WEIGHTS = extractor_weights([EVAL["tradeoff"]["feature_metric"]])
+
+
+# Generated sets of the tables: sample shard jobs (rules/evaluation_sets.smk).
+GQ_SETS = table_sets({"full": "full", "baseline": lambda d: f"baseline-{d}"}, GEN_DOMAINS)
+ABL_SETS = table_sets({p: p for p in EVAL["ablation"]["presets"]}, GEN_DOMAINS)
+K360_DOMAIN = EVAL["kitti360"]["domain"]
+K360_SETS = generated_sets({
+    "full": ("full", K360_DOMAIN, EVAL["sampler"], EVAL["steps"], EVAL["scans_per_set"]),
+    "baseline": (f"baseline-{K360_DOMAIN}", K360_DOMAIN, EVAL["sampler"], EVAL["steps"], EVAL["scans_per_set"]),
+})
+TRADEOFF_SETS = generated_sets({f"{s}-{n}/{d}": ("full", d, s, n, EVAL["tradeoff"]["scans"])
+                                for s, steps in EVAL["tradeoff"]["samplers"].items() for n in steps
+                                for d in (EVAL["tradeoff"]["domains"] or GEN_DOMAINS)})
+
+
+rule sample_eval:
+    """One shard of a generated set of the generation tables (a preset or baseline, sampler, steps)."""
+    input:
+        checkpoint=lambda w: eval_checkpoint(w.model),
+        prompts=rules.encode_prompts.output,
+    output:
+        directory(f"{DATA}/eval_samples/{{model}}/{{sampler}}_{{steps}}/{{domain}}/shard_{{shard}}"),
+    wildcard_constraints:
+        model=r"[a-z_]+|baseline-\w+",
+        sampler="ddpm|ddim|dpmpp_2m",
+        steps=r"\d+",
+        shard=r"\d+",
+    params:
+        settings=lambda w: eval_sampling_settings(w.sampler, w.steps),
+        seed=config["seed"],
+        code=code("sample"),
+    log:
+        "logs/eval_samples/{model}/{sampler}_{steps}/{domain}_{shard}.log",
+    benchmark:
+        "benchmarks/out/eval_samples/{model}/{sampler}_{steps}/{domain}_{shard}.tsv"
+    conda:
+        ENV
+    resources:
+        **job_resources("sample_eval"),
+    shell:
+        "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
+        "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "
+        "--seed {params.seed} --out {output} > {log} 2>&1"
 
 
 rule train_extractor:
@@ -36,9 +79,7 @@ rule train_extractor:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=8000,
-        runtime=6 * 60,
+        **job_resources("train_extractor"),
     shell:
         "omnilidar train-extractor --extractor {wildcards.extractor} --index {input} "
         "--settings {params.settings:q} --range-image {params.range_image:q} "
@@ -66,11 +107,9 @@ rule train_single_domain:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=32000,
-        runtime=24 * 60,
+        **job_resources("train_single_domain"),
     shell:
-        "omnilidar train-generator --domains {input.domains} --prompts {input.prompts} "
+        generator_launcher() + " train-generator --domains {input.domains} --prompts {input.prompts} "
         "--preset single_domain --settings {params.settings:q} --seed {params.seed} "
         "--work-dir {params.work_dir} --out {output} > {log} 2>&1"
 
@@ -83,6 +122,7 @@ rule generation_quality:
         full=f"{GENERATOR}/full/model.pt",
         baselines=expand(f"{SINGLE_DOMAIN}/{{domain}}/model.pt", domain=GEN_DOMAINS),
         weights=list(GQ_WEIGHTS.values()),
+        samples=[d for dirs in GQ_SETS.values() for d in dirs],
     output:
         json="results/generation_quality.json",
         markdown=report("results/generation_quality.md", caption="../workflow/report/generation_quality.rst", category="Generation"),
@@ -92,6 +132,7 @@ rule generation_quality:
         seed=config["seed"],
         baselines=" ".join(f"--baseline {d}={SINGLE_DOMAIN}/{d}/model.pt" for d in GEN_DOMAINS),
         weights=weights_args(GQ_WEIGHTS),
+        samples=sets_args(GQ_SETS),
         code=code("generation-quality"),
     log:
         "logs/evaluation/generation_quality.log",
@@ -100,12 +141,10 @@ rule generation_quality:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=12 * 60,
+        **job_resources("generation_quality"),
     shell:
         "omnilidar generation-quality --domains {input.domains} --prompts {input.prompts} --full {input.full} "
-        "{params.baselines} {params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "{params.baselines} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -116,6 +155,7 @@ rule ablation_table:
         prompts=rules.encode_prompts.output,
         checkpoints=expand(f"{GENERATOR}/{{preset}}/model.pt", preset=EVAL["ablation"]["presets"]),
         weights=list(ABL_WEIGHTS.values()),
+        samples=[d for dirs in ABL_SETS.values() for d in dirs],
     output:
         json="results/ablation.json",
         markdown=report("results/ablation.md", caption="../workflow/report/ablation.rst", category="Generation"),
@@ -125,6 +165,7 @@ rule ablation_table:
         seed=config["seed"],
         checkpoints=" ".join(f"--checkpoint {p}={GENERATOR}/{p}/model.pt" for p in EVAL["ablation"]["presets"]),
         weights=weights_args(ABL_WEIGHTS),
+        samples=sets_args(ABL_SETS),
         code=code("ablation-table"),
     log:
         "logs/evaluation/ablation.log",
@@ -133,12 +174,10 @@ rule ablation_table:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=12 * 60,
+        **job_resources("ablation_table"),
     shell:
         "omnilidar ablation-table --domains {input.domains} --prompts {input.prompts} {params.checkpoints} "
-        "{params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "{params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -150,6 +189,7 @@ rule kitti360_generation:
         full=f"{GENERATOR}/full/model.pt",
         baseline=f"{SINGLE_DOMAIN}/{EVAL['kitti360']['domain']}/model.pt",
         weights=list(K360_WEIGHTS.values()),
+        samples=[d for dirs in K360_SETS.values() for d in dirs],
     output:
         json="results/kitti360_generation.json",
         markdown=report("results/kitti360_generation.md", caption="../workflow/report/kitti360_generation.rst", category="Generation"),
@@ -158,6 +198,7 @@ rule kitti360_generation:
         settings=eval_settings("kitti360"),
         seed=config["seed"],
         weights=weights_args(K360_WEIGHTS),
+        samples=sets_args(K360_SETS),
         code=code("kitti360-generation"),
     log:
         "logs/evaluation/kitti360_generation.log",
@@ -166,12 +207,10 @@ rule kitti360_generation:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=6 * 60,
+        **job_resources("kitti360_generation"),
     shell:
         "omnilidar kitti360-generation --index {input.index} --prompts {input.prompts} --full {input.full} "
-        "--baseline {input.baseline} {params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "--baseline {input.baseline} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -186,6 +225,7 @@ rule sampler_tradeoff:
         effects="results/effects_tradeoff.json",
         curve="results/gda_curve.json",
         weights=list(TRADEOFF_WEIGHTS.values()),
+        samples=[d for dirs in TRADEOFF_SETS.values() for d in dirs],
     output:
         json="results/tradeoff.json",
         figure=report("results/figures/tradeoff.png", caption="../workflow/report/tradeoff.rst", category="Accuracy vs time"),
@@ -193,6 +233,7 @@ rule sampler_tradeoff:
         settings=eval_settings("tradeoff"),
         seed=config["seed"],
         weights=weights_args(TRADEOFF_WEIGHTS),
+        samples=sets_args(TRADEOFF_SETS),
         code=code("sampler-tradeoff"),
     log:
         "logs/evaluation/tradeoff.log",
@@ -201,12 +242,10 @@ rule sampler_tradeoff:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=12 * 60,
+        **job_resources("sampler_tradeoff"),
     shell:
         "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
-        "--checkpoint {input.checkpoint} {params.weights} --effects {input.effects} "
+        "--checkpoint {input.checkpoint} {params.weights} {params.samples} --effects {input.effects} "
         "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} "
         "--out {output.json} --figure {output.figure} > {log} 2>&1"
 
@@ -233,8 +272,7 @@ rule generator_evidence:
     conda:
         ENV
     resources:
-        mem_mb=8000,
-        runtime=60,
+        **job_resources("generator_evidence"),
     shell:
         "omnilidar generator-evidence --domains {input.domains} --prompts {input.prompts} "
         "--checkpoint {input.checkpoint} --settings {params.settings:q} --seed {params.seed} "

@@ -19,8 +19,7 @@ rule encode_prompts:
     conda:
         ENV
     resources:
-        mem_mb=4000,
-        runtime=20,
+        **job_resources("encode_prompts"),
     shell:
         "omnilidar encode-prompts --settings {params.settings:q} --out {output} > {log} 2>&1"
 
@@ -47,11 +46,10 @@ rule train_generator:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=32000,
-        runtime=24 * 60,
+        **job_resources("train_generator"),
     shell:
-        "omnilidar train-generator --domains {input.domains} --prompts {input.prompts} "
+        # generator_launcher(): torchrun with one process per GPU when resources.generator_gpus > 1.
+        generator_launcher() + " train-generator --domains {input.domains} --prompts {input.prompts} "
         "--preset {wildcards.preset} --settings {params.settings:q} --seed {params.seed} "
         "--work-dir {params.work_dir} --out {output} > {log} 2>&1"
 
@@ -76,9 +74,7 @@ rule sample_domain:
     conda:
         ENV
     resources:
-        gpu=1,
-        mem_mb=16000,
-        runtime=6 * 60,
+        **job_resources("sample_domain"),
     shell:
         "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
         "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "

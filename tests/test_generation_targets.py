@@ -218,3 +218,35 @@ def test_single_domain_baselines_train_as_long_as_the_full_model_unless_told(tmp
 
     assert baseline_iterations() == full
     assert baseline_iterations("--configfile", "config/config.yaml", "short.yaml") == 7
+
+
+def test_generation_quality_reads_sample_shards_as_it_would_sample(fixture_dir, tmp_path):
+    """The workflow passes the sets as `omnilidar sample` shards: same scans, same scores."""
+    r = fixture_dir
+    gen = json.loads(json.dumps(torch.load(r / "model.pt", weights_only=True)["config"]))
+    gen["sampling"].update(sampler="ddim", steps=1, batch_size=2, scans_per_shard=2, device="cpu")
+    args = ["--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"), "--full", str(r / "model.pt"),
+            "--weights", f"frid={r / 'frid.pt'}",
+            "--settings", _settings(generation_quality={"metrics": ["FRID", "JSD", "MMD"]})]
+    sets = []
+    for dom in DOMAINS:
+        shard = tmp_path / dom / "shard_0"
+        assert main(["sample", "--checkpoint", str(r / "model.pt"), "--prompts", str(r / "prompts.pt"),
+                     "--domain", dom, "--shard", "0", "--settings", json.dumps(gen), "--seed", "0",
+                     "--out", str(shard)]) == 0
+        sets += ["--samples", f"full/{dom}={shard}"]
+    results = {}
+    for name, extra in (("sampled", []), ("shards", sets)):
+        out = tmp_path / f"{name}.json"
+        assert main(["generation-quality", *args, *extra, "--seed", "0", "--out", str(out),
+                     "--markdown", str(tmp_path / f"{name}.md"), "--figure", str(tmp_path / f"{name}.png")]) == 0
+        results[name] = json.loads(out.read_text())["scores"]
+    for dom in DOMAINS:
+        a, b = results["sampled"][dom]["OmniLiDAR"], results["shards"][dom]["OmniLiDAR"]
+        for metric in ("FRID", "JSD", "MMD_1e4"):
+            assert a[metric] == pytest.approx(b[metric], rel=1e-5), (dom, metric)
+    # A set with fewer scans than asked for is one clear error.
+    bad = tmp_path / "bad.json"
+    assert main(["generation-quality", *args, "--samples", f"full/{DOMAINS[0]}={tmp_path / 'nowhere'}", "--seed", "0",
+                 "--out", str(bad), "--markdown", str(tmp_path / "b.md"), "--figure", str(tmp_path / "b.png")]) == 2
+    assert not bad.exists()

@@ -75,3 +75,25 @@ def test_unknown_config_key_is_an_input_error(tmp_path, capsys):
     assert main(["encode-prompts", "--settings", json.dumps(bad), "--out", str(tmp_path / "p.pt")]) == 2
     assert "base_chanels" in capsys.readouterr().err
     assert not (tmp_path / "p.pt").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message on a machine without CUDA")
+def test_cuda_text_device_without_cuda_is_one_line(tmp_path, capsys):
+    s = tiny_settings()
+    s["text"]["device"] = "cuda"
+    assert main(["encode-prompts", "--settings", json.dumps(s), "--out", str(tmp_path / "p.pt")]) == 2
+    err = capsys.readouterr().err.strip()  # the echoed command line, then one error line
+    assert "Traceback" not in err and len(err.splitlines()) == 2
+    assert "generator.text.device cuda: CUDA is not available" in err.splitlines()[-1]
+    assert not (tmp_path / "p.pt").exists()
+
+
+def test_clip_missing_from_offline_cache_says_so(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("HF_HOME", str(tmp_path / "empty_hf_home"))  # nothing cached, and no network asked
+    s = tiny_settings()
+    s["text"].update(encoder="clip", clip_model="openai/clip-vit-large-patch14")
+    assert main(["encode-prompts", "--settings", json.dumps(s), "--out", str(tmp_path / "p.pt")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 2
+    assert "offline Hugging Face cache" in err.splitlines()[-1] and "clip-vit-large-patch14" in err
+    assert not (tmp_path / "p.pt").exists()

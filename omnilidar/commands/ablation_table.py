@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.metrics.sample_sets import sample_set_arg
 
 HELP = "score the ablation presets (single-domain ... full) averaged over domains"
 DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -24,6 +25,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--prompts", required=True)
     parser.add_argument("--checkpoint", action="append", default=[], metavar="PRESET=CKPT", required=True)
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
+    sample_set_arg(parser)  # sets PRESET/DOMAIN
     report_outputs_arg(parser)
 
 
@@ -39,6 +41,7 @@ def run(args) -> int:
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
     from omnilidar.metrics.generation import compare, real_domain_images, sample_images, set_features
+    from omnilidar.metrics.sample_sets import generated_set, parse_sample_sets
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import (collect_weights, metric_table, metric_value, provenance_note,
                                              samples_figure, write_outputs)
@@ -50,6 +53,7 @@ def run(args) -> int:
     ckpts = parse_pairs(args.checkpoint, "--checkpoint")
     presets = [p for p in settings["ablation"]["presets"] if p in ckpts]
     cache = load_prompt_cache(args.prompts)
+    sets = parse_sample_sets(args.samples)
     device = resolve_device(settings["device"], "evaluation.device")
     models = {p: load_generator(ckpts[p], device) for p in presets}
     spec = range_image_spec(next(iter(models.values()))[1]["config"])
@@ -64,8 +68,8 @@ def run(args) -> int:
         shown["Real"][domain] = real_imgs[0]
         for p in presets:
             den, payload = models[p]
-            gen, sec = sample_images(den, payload, cache, domain, n, settings["sampler"], settings["steps"],
-                                     args.seed, bs)
+            gen, sec = generated_set(sets, f"{p}/{domain}", den, payload, cache, domain, n, settings["sampler"],
+                                     settings["steps"], args.seed, bs)
             scores[p][domain] = compare(real, set_features(gen, spec, extractors, bs), extractors)
             scores[p][domain]["seconds_per_scan"] = sec
             shown[LABELS[p]][domain] = gen[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.metrics.sample_sets import sample_set_arg
 
 HELP = "score generated scans of every domain (full model vs single-domain baselines) with JSD/MMD/FRD/FRID/FSVD/FPVD"
 DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -21,6 +22,7 @@ def add_arguments(parser) -> None:
                         help="single-domain baseline checkpoint of one domain (repeat per domain)")
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH",
                         help="extractor weights (official file or self-trained checkpoint), e.g. frd=data/extractors/frd.pt")
+    sample_set_arg(parser)  # sets full/DOMAIN and baseline/DOMAIN
     report_outputs_arg(parser)
 
 
@@ -34,6 +36,7 @@ def run(args) -> int:
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
     from omnilidar.metrics.generation import compare, real_domain_images, sample_images, set_features
+    from omnilidar.metrics.sample_sets import generated_set, parse_sample_sets
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import (collect_weights, metric_table, provenance_note, samples_figure,
                                              write_outputs)
@@ -44,6 +47,7 @@ def run(args) -> int:
     extractors = load_extractors(parse_pairs(args.weights, "--weights"), metrics)
     baselines = parse_pairs(args.baseline, "--baseline")
     cache = load_prompt_cache(args.prompts)
+    sets = parse_sample_sets(args.samples)
     device = resolve_device(settings["device"], "evaluation.device")
     full, payload = load_generator(args.full, device)
     spec = range_image_spec(payload["config"])
@@ -53,15 +57,15 @@ def run(args) -> int:
         t0 = time.perf_counter()
         real_imgs = real_domain_images(args.domains, domain, spec.shape, n)
         real = set_features(real_imgs, spec, extractors, bs, f"real {domain}")
-        gen, sec = sample_images(full, payload, cache, domain, n, settings["sampler"], settings["steps"],
-                                 args.seed, bs)
+        gen, sec = generated_set(sets, f"full/{domain}", full, payload, cache, domain, n, settings["sampler"],
+                                 settings["steps"], args.seed, bs)
         scores[domain] = {FULL: compare(real, set_features(gen, spec, extractors, bs), extractors)}
         scores[domain][FULL]["seconds_per_scan"] = sec
         shown["Real"][domain], shown[FULL][domain] = real_imgs[0], gen[0]
         if domain in baselines:
             base, base_payload = load_generator(baselines[domain], device)
-            bgen, bsec = sample_images(base, base_payload, cache, domain, n, settings["sampler"], settings["steps"],
-                                       args.seed, bs)
+            bgen, bsec = generated_set(sets, f"baseline/{domain}", base, base_payload, cache, domain, n,
+                                       settings["sampler"], settings["steps"], args.seed, bs)
             scores[domain][BASELINE] = compare(real, set_features(bgen, spec, extractors, bs), extractors)
             scores[domain][BASELINE]["seconds_per_scan"] = bsec
             shown[BASELINE][domain] = bgen[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.metrics.sample_sets import sample_set_arg
 
 HELP = "score Vehicle-domain samples against KITTI-360 scans (full model vs single-domain baseline)"
 DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -16,6 +17,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--full", required=True, help="full OmniLiDAR checkpoint")
     parser.add_argument("--baseline", default=None, help="single-domain (R2DM-equivalent) checkpoint of the domain")
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
+    sample_set_arg(parser)  # sets full and baseline
     report_outputs_arg(parser)
 
 
@@ -29,6 +31,7 @@ def run(args) -> int:
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
     from omnilidar.metrics.generation import compare, dataset_images, sample_images, set_features
+    from omnilidar.metrics.sample_sets import generated_set, parse_sample_sets
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import (collect_weights, metric_table, provenance_note, samples_figure,
                                              write_outputs)
@@ -39,18 +42,20 @@ def run(args) -> int:
     n, bs = settings["scans_per_set"], settings["batch_size"]
     extractors = load_extractors(parse_pairs(args.weights, "--weights"), metrics)
     cache = load_prompt_cache(args.prompts)
+    sets = parse_sample_sets(args.samples)
     t0 = time.perf_counter()
     device = resolve_device(settings["device"], "evaluation.device")
     full, payload = load_generator(args.full, device)
     spec = range_image_spec(payload["config"])
     real_imgs = dataset_images(args.index, k["split"], spec, n)
     real = set_features(real_imgs, spec, extractors, bs, "KITTI-360")
-    models = {"OmniLiDAR": (full, payload)}
+    models = {"OmniLiDAR": ("full", full, payload)}
     if args.baseline:
-        models = {"single-domain (R2DM)": load_generator(args.baseline, device), **models}
+        models = {"single-domain (R2DM)": ("baseline", *load_generator(args.baseline, device)), **models}
     scores, shown = {}, {"KITTI-360": {domain: real_imgs[0]}}
-    for name, (den, pl) in models.items():
-        gen, sec = sample_images(den, pl, cache, domain, n, settings["sampler"], settings["steps"], args.seed, bs)
+    for name, (key, den, pl) in models.items():
+        gen, sec = generated_set(sets, key, den, pl, cache, domain, n, settings["sampler"], settings["steps"],
+                                 args.seed, bs)
         scores[name] = compare(real, set_features(gen, spec, extractors, bs), extractors)
         scores[name]["seconds_per_scan"] = sec
         shown[name] = {domain: gen[0]}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.metrics.sample_sets import sample_set_arg
 
 HELP = "measure per-domain JSD/MMD/feature metric and seconds per scan for every sampler and step count"
 DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -21,6 +22,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--effects", default=None, help="results/effects_tradeoff.json (optional)")
     parser.add_argument("--gda-curve", default=None,
                         help="results/gda_curve.json: downstream mIoU against the compute of generated scans")
+    sample_set_arg(parser)  # sets SAMPLER-STEPS/DOMAIN
     report_outputs_arg(parser, markdown=False)
 
 
@@ -73,6 +75,7 @@ def run(args) -> int:
     from omnilidar.metrics.extractors import METRIC_NAMES
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
     from omnilidar.metrics.generation import compare, real_domain_images, sample_images, set_features
+    from omnilidar.metrics.sample_sets import generated_set, parse_sample_sets
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import collect_weights, pareto_front, tradeoff_figure, write_outputs
 
@@ -86,25 +89,28 @@ def run(args) -> int:
     den, payload = load_generator(args.checkpoint, resolve_device(settings["device"], "evaluation.device"))
     spec = range_image_spec(payload["config"])
     cache = load_prompt_cache(args.prompts)
+    sets = parse_sample_sets(args.samples)
     domains = cfg["domains"] or list(payload["domains"])
     real = {d: set_features(real_domain_images(args.domains, d, spec.shape, settings["scans_per_set"]), spec,
                             extractors, settings["batch_size"], f"real {d}") for d in domains}
     # One untimed step so that lazy initialisation is not charged to the first setting.
-    sample_images(den, payload, cache, domains[0], 1, "ddim", 1, args.seed, 1)
+    if not sets:
+        sample_images(den, payload, cache, domains[0], 1, "ddim", 1, args.seed, 1)
     t_all = time.perf_counter()
     points = []
     for sampler, steps_list in cfg["samplers"].items():
         for steps in steps_list:
             per_domain, secs = {}, []
             for d in domains:
-                gen, sec = sample_images(den, payload, cache, d, cfg["scans"], sampler, steps, args.seed,
-                                         settings["batch_size"])
+                gen, sec = generated_set(sets, f"{sampler}-{steps}/{d}", den, payload, cache, d, cfg["scans"],
+                                         sampler, steps, args.seed, settings["batch_size"])
                 s = compare(real[d], set_features(gen, spec, extractors, settings["batch_size"]), extractors)
                 per_domain[d] = {"JSD": s.get("JSD"), "MMD": s.get("MMD_1e4"), feat: s.get(feat),
                                  "seconds_per_scan": sec, "weights": s["weights"],
                                  "comparable_with_paper": s["comparable_with_paper"]}
                 secs.append(sec)
-            point = {"sampler": sampler, "steps": steps, "seconds_per_scan": float(np.mean(secs)),
+            secs = [s for s in secs if s is not None]  # shards fully resumed record no time
+            point = {"sampler": sampler, "steps": steps, "seconds_per_scan": float(np.mean(secs)) if secs else None,
                      "per_domain": per_domain}
             for m in ("JSD", "MMD", feat):
                 vals = [v[m] for v in per_domain.values()]

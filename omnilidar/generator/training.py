@@ -127,6 +127,17 @@ def ema_hook(training: dict):
     return EMAHook(momentum=momentum)
 
 
+def state_digest(state: dict) -> str:
+    """sha256 of a state dict's tensors in key order."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for key in sorted(state):
+        h.update(key.encode())
+        h.update(state[key].detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
 def _log(message: str) -> None:
     print(message, flush=True)
 
@@ -135,6 +146,33 @@ def _dist_info() -> tuple[str, int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     return ("pytorch" if world > 1 else "none"), rank, world
+
+
+def init_distributed(world: int) -> None:
+    """Join the process group torchrun set up (NCCL on CUDA, gloo on CPU) before the Runner:
+    mmengine's own set-up calls torch.cuda.set_device, which a CPU-only torch lacks."""
+    import torch.distributed as dist
+
+    if world <= 1 or dist.is_initialized():
+        return
+    if torch.cuda.is_available():
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
+    dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+
+
+def agreed_resume_point(run_dir: Path, provenance: dict, iterations: int, world: int) -> Path | None:
+    """:func:`resume_point` decided by rank 0 alone (it may remove a stale work dir);
+    the other ranks wait for its answer and resume the same checkpoint."""
+    if world <= 1:
+        return resume_point(run_dir, provenance, iterations, log=_log)
+    import torch.distributed as dist
+
+    decision = [None]
+    if dist.get_rank() == 0:
+        found = resume_point(run_dir, provenance, iterations, log=_log)
+        decision = [str(found) if found else None]
+    dist.broadcast_object_list(decision, src=0)
+    return Path(decision[0]) if decision[0] else None
 
 
 def train_generator(
@@ -165,12 +203,16 @@ def train_generator(
     dataset = RangeImageDataset(domains, (h, w), spans)
 
     run_dir = Path(work_dir)
-    provenance = job_provenance("train-generator", trajectory_settings(settings), seed,
+    launcher, rank, world = _dist_info()
+    init_distributed(world)
+    trajectory = trajectory_settings(settings)
+    if world > 1:  # each rank draws its own batches: the trajectory depends on how many there are
+        trajectory["world_size"] = world
+    provenance = job_provenance("train-generator", trajectory, seed,
                                 {"domains": domains_index, "prompts": prompts_path})
-    resume_from = resume_point(run_dir, provenance, tr["iterations"], log=_log)
+    resume_from = agreed_resume_point(run_dir, provenance, tr["iterations"], world)
     skip = checkpoint_iteration(resume_from) if resume_from else 0
 
-    launcher, rank, world = _dist_info()
     sampler = make_batch_sampler(
         tr["strategy"], dataset, tr["batch_size"], seed, tr["single_domain"], rank=rank, world_size=world, skip=skip
     )
@@ -210,6 +252,9 @@ def train_generator(
         default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
         custom_hooks=[ema_hook(tr), *make_hooks(settings, names, seed, provenance)],
         launcher=launcher,
+        # A CPU module takes no device_ids (mmengine's default passes LOCAL_RANK).
+        cfg=None if cuda or world == 1 else dict(model_wrapper_cfg=dict(
+            type="MMDistributedDataParallel", device_ids=None, broadcast_buffers=False)),
         env_cfg=dict(cudnn_benchmark=False, dist_cfg=dict(backend="nccl" if cuda else "gloo")),
         **resumable_runner_args(resume_from, seed, tr["log_interval"]),
     )
@@ -219,12 +264,15 @@ def train_generator(
         + (f", resuming at iteration {skip} from {resume_from.name}" if resume_from else ", from scratch")
     )
     runner.train()
-    relative_marker(run_dir)
+    if is_main_process():
+        relative_marker(run_dir)
 
     ema = next(h for h in runner._hooks if isinstance(h, EMAHook)).ema_model.module
     state = {k: v.detach().cpu().clone() for k, v in ema.denoiser.state_dict().items()}
     summary = {
         "iterations": int(runner.iter),
+        # Same on every DDP rank when gradients were averaged (tests compare the ranks').
+        "weights_digest": state_digest(state),
         "parameters": count_parameters(denoiser),
         "work_dir": str(run_dir),
         "resumed_from": skip,

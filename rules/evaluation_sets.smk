@@ -1,0 +1,48 @@
+# Generated scan sets of the generation tables (rules/evaluation.smk): each set is a
+# list of sample shard folders made by parallel `omnilidar sample` jobs (rule sample_eval),
+# so a table only scores and a failure loses one shard. Needs rules/generator.smk first.
+
+SINGLE_DOMAIN = f"{DATA}/generator_single"
+EVAL_SHARD = config["generator"]["sampling"]["scans_per_shard"]
+
+
+def eval_checkpoint(model):
+    """Generator of an evaluation set: a preset (full, cdts, ...) or baseline-<Domain>."""
+    if model.startswith("baseline-"):
+        return f"{SINGLE_DOMAIN}/{model[len('baseline-'):]}/model.pt"
+    return f"{GENERATOR}/{model}/model.pt"
+
+
+def eval_sample_shards(model, domain, sampler, steps, count):
+    """Shard folders holding the first ``count`` scans of one generated set."""
+    shards = -(-int(count) // EVAL_SHARD)
+    gen = config["generator"]["sampling"]
+    if model == "full" and (sampler, int(steps)) == (gen["sampler"], gen["steps"]) and count <= gen["scans_per_domain"]:
+        return sample_shards(domain)[:shards]
+    return [f"{DATA}/eval_samples/{model}/{sampler}_{steps}/{domain}/shard_{k}" for k in range(shards)]
+
+
+def generated_sets(sets):
+    """{key: shard folders} of several sets given as {key: (model, domain, sampler, steps, count)}."""
+    return {key: eval_sample_shards(*spec) for key, spec in sets.items()}
+
+
+def sets_args(sets):
+    return " ".join(f"--samples {key}={d}" for key, dirs in sets.items() for d in dirs)
+
+
+def table_sets(models, domains):
+    """{prefix/Domain: shards} of the tables' sets (evaluation sampler, steps, scans_per_set);
+    ``models`` maps a key prefix to a model, or to a function of the domain giving one."""
+    ev = config["evaluation"]
+    return generated_sets({f"{prefix}/{d}": (m(d) if callable(m) else m, d, ev["sampler"], ev["steps"], ev["scans_per_set"])
+                           for prefix, m in models.items() for d in domains})
+
+
+def eval_sampling_settings(sampler, steps):
+    """The generator section as `omnilidar sample` reads it, with the evaluation's sampler,
+    steps, batch and device."""
+    gen = json.loads(settings("generator"))
+    ev = config["evaluation"]
+    gen["sampling"].update(sampler=sampler, steps=int(steps), batch_size=ev["batch_size"], device=ev["device"])
+    return json.dumps(gen, sort_keys=True)
