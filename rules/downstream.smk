@@ -73,9 +73,10 @@ rule train_labeler:
         ENV
     threads: 1
     resources:
-        mem_mb=8000,
-        runtime=600,
-        gpu=1,
+        # importing a checkpoint is a small CPU job; training one is the 10-hour GPU job
+        mem_mb=4000 if DOWNSTREAM["labeler"]["checkpoint"] else 8000,
+        runtime=15 if DOWNSTREAM["labeler"]["checkpoint"] else 600,
+        gpu=0 if DOWNSTREAM["labeler"]["checkpoint"] else 1,
     shell:
         "omnilidar train-labeler --index {input.index} --settings {params.settings:q} --seed {params.seed} "
         "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
