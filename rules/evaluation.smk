@@ -96,6 +96,7 @@ rule generation_quality:
         seed=config["seed"],
         baselines=" ".join(f"--baseline {d}={SINGLE_DOMAIN}/{d}/model.pt" for d in GEN_DOMAINS),
         weights=weights_args(GQ_WEIGHTS),
+        data_source=data_source(),
         code=code("generation-quality"),
     log:
         "logs/evaluation/generation_quality.log",
@@ -109,7 +110,7 @@ rule generation_quality:
         runtime=12 * 60,
     shell:
         "omnilidar generation-quality --domains {input.domains} --prompts {input.prompts} --full {input.full} "
-        "{params.baselines} {params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "{params.baselines} {params.weights} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -129,6 +130,7 @@ rule ablation_table:
         seed=config["seed"],
         checkpoints=" ".join(f"--checkpoint {p}={GENERATOR}/{p}/model.pt" for p in EVAL["ablation"]["presets"]),
         weights=weights_args(ABL_WEIGHTS),
+        data_source=data_source(),
         code=code("ablation-table"),
     log:
         "logs/evaluation/ablation.log",
@@ -142,7 +144,7 @@ rule ablation_table:
         runtime=12 * 60,
     shell:
         "omnilidar ablation-table --domains {input.domains} --prompts {input.prompts} {params.checkpoints} "
-        "{params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "{params.weights} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -162,6 +164,7 @@ rule kitti360_generation:
         settings=eval_settings("kitti360"),
         seed=config["seed"],
         weights=weights_args(K360_WEIGHTS),
+        data_source=data_source("kitti360"),
         code=code("kitti360-generation"),
     log:
         "logs/evaluation/kitti360_generation.log",
@@ -175,7 +178,7 @@ rule kitti360_generation:
         runtime=6 * 60,
     shell:
         "omnilidar kitti360-generation --index {input.index} --prompts {input.prompts} --full {input.full} "
-        "--baseline {input.baseline} {params.weights} --settings {params.settings:q} --seed {params.seed} "
+        "--baseline {input.baseline} {params.weights} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -197,6 +200,7 @@ rule sampler_tradeoff:
         settings=eval_settings("tradeoff"),
         seed=config["seed"],
         weights=weights_args(TRADEOFF_WEIGHTS),
+        data_source=data_source(),
         code=code("sampler-tradeoff"),
     log:
         "logs/evaluation/tradeoff.log",
@@ -211,7 +215,7 @@ rule sampler_tradeoff:
     shell:
         "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
         "--checkpoint {input.checkpoint} {params.weights} --effects {input.effects} "
-        "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} "
+        "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --figure {output.figure} > {log} 2>&1"
 
 
@@ -229,6 +233,7 @@ rule generator_evidence:
     params:
         settings=settings("evaluation", drop=("extractors", *[t for t in TABLES if t != "evidence"])),
         seed=config["seed"],
+        data_source=data_source(),
         code=code("generator-evidence"),
     log:
         "logs/evaluation/generator_evidence.log",
@@ -241,7 +246,7 @@ rule generator_evidence:
         runtime=60,
     shell:
         "omnilidar generator-evidence --domains {input.domains} --prompts {input.prompts} "
-        "--checkpoint {input.checkpoint} --settings {params.settings:q} --seed {params.seed} "
+        "--checkpoint {input.checkpoint} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 

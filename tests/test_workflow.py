@@ -119,7 +119,8 @@ def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path, real_data):
 
     summary = yaml.safe_load((wd / "results" / "data_summary.json").read_text())
     assert summary["experiment"] == "data_summary"
-    assert summary["data_source"]["semantickitti"] == "synthetic"
+    assert summary["data_source"]["semantickitti"]["kind"] == "synthetic"
+    assert summary["data_source"]["semantickitti"]["root"].endswith("synthetic/semantickitti")
     real = summary["groups"]["real_kitti_reference"]["points_per_scan"]["mean"]
     synthetic = summary["groups"]["semantickitti"]["points_per_scan"]["mean"]
     assert 0.7 < synthetic / real < 1.3, "synthetic HDL-64 scans should hold about as many points as KITTI's"

@@ -23,6 +23,7 @@ def run(args) -> int:
     from omnilidar.data.sensors import get_sensor
     from omnilidar.domains.fidelity import fidelity_report, plot_report, read_scans
     from omnilidar.io.atomic import write_text_atomic
+    from omnilidar.data_source import configured_scans
     from omnilidar.provenance import envelope
 
     settings = validate(dict(args.settings), "domains.schema.yaml", source="--settings")
@@ -32,7 +33,7 @@ def run(args) -> int:
     report = fidelity_report(scans, get_sensor(cfg["sensor"]), cfg["effects"], cfg["seeds"])
     wall = time.perf_counter() - t0
     result = envelope("domain_fidelity", "domain-fidelity", cfg, {"seed": args.seed, "draws": cfg["seeds"]},
-                      {"domain_fidelity": wall}, "real", scans=[p for p, _ in scans], effects=report)
+                      {"domain_fidelity": wall}, configured_scans([p for p, _ in scans]), scans=[p for p, _ in scans], effects=report)
     write_text_atomic(args.out, json.dumps(result, indent=1))
     plot_report(report, args.figure)
     print(f"fidelity report: {len(report)} effects on {len(scans)} scans in {wall:.1f} s -> {args.out}")

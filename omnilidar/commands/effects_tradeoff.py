@@ -25,6 +25,7 @@ def run(args) -> int:
     from omnilidar.domains.fidelity import read_scans
     from omnilidar.domains.tradeoff import plot_tradeoff, tradeoff_study
     from omnilidar.io.atomic import write_text_atomic
+    from omnilidar.data_source import configured_scans
     from omnilidar.provenance import envelope
 
     settings = validate(dict(args.settings), "domains.schema.yaml", source="--settings")
@@ -36,7 +37,7 @@ def run(args) -> int:
     studies = [tradeoff_study(scan, sensor, cfg["effects"], cfg["severity"], cfg["seeds"]) for _, scan in scans]
     wall = time.perf_counter() - t0
     result = envelope("effects_tradeoff", "effects-tradeoff", cfg, {"seed": args.seed, "curves": cfg["seeds"]},
-                      {"effects_tradeoff": wall}, "real", scans=[p for p, _ in scans],
+                      {"effects_tradeoff": wall}, configured_scans([p for p, _ in scans]), scans=[p for p, _ in scans],
                       effects=studies[0], per_scan=studies[1:])
     write_text_atomic(args.out, json.dumps(result, indent=1))
     plot_tradeoff(studies[0], args.figure)
