@@ -133,6 +133,7 @@ rule generation_quality:
         baselines=" ".join(f"--baseline {d}={SINGLE_DOMAIN}/{d}/model.pt" for d in GEN_DOMAINS),
         weights=weights_args(GQ_WEIGHTS),
         samples=sets_args(GQ_SETS),
+        data_source=data_source(),
         code=code("generation-quality"),
     log:
         "logs/evaluation/generation_quality.log",
@@ -144,7 +145,7 @@ rule generation_quality:
         **job_resources("generation_quality"),
     shell:
         "omnilidar generation-quality --domains {input.domains} --prompts {input.prompts} --full {input.full} "
-        "{params.baselines} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
+        "{params.baselines} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -166,6 +167,7 @@ rule ablation_table:
         checkpoints=" ".join(f"--checkpoint {p}={GENERATOR}/{p}/model.pt" for p in EVAL["ablation"]["presets"]),
         weights=weights_args(ABL_WEIGHTS),
         samples=sets_args(ABL_SETS),
+        data_source=data_source(),
         code=code("ablation-table"),
     log:
         "logs/evaluation/ablation.log",
@@ -177,7 +179,7 @@ rule ablation_table:
         **job_resources("ablation_table"),
     shell:
         "omnilidar ablation-table --domains {input.domains} --prompts {input.prompts} {params.checkpoints} "
-        "{params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
+        "{params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -199,6 +201,7 @@ rule kitti360_generation:
         seed=config["seed"],
         weights=weights_args(K360_WEIGHTS),
         samples=sets_args(K360_SETS),
+        data_source=data_source("kitti360"),
         code=code("kitti360-generation"),
     log:
         "logs/evaluation/kitti360_generation.log",
@@ -210,7 +213,7 @@ rule kitti360_generation:
         **job_resources("kitti360_generation"),
     shell:
         "omnilidar kitti360-generation --index {input.index} --prompts {input.prompts} --full {input.full} "
-        "--baseline {input.baseline} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} "
+        "--baseline {input.baseline} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 
@@ -234,6 +237,7 @@ rule sampler_tradeoff:
         seed=config["seed"],
         weights=weights_args(TRADEOFF_WEIGHTS),
         samples=sets_args(TRADEOFF_SETS),
+        data_source=data_source(),
         code=code("sampler-tradeoff"),
     log:
         "logs/evaluation/tradeoff.log",
@@ -246,7 +250,7 @@ rule sampler_tradeoff:
     shell:
         "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
         "--checkpoint {input.checkpoint} {params.weights} {params.samples} --effects {input.effects} "
-        "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} "
+        "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --figure {output.figure} > {log} 2>&1"
 
 
@@ -264,6 +268,7 @@ rule generator_evidence:
     params:
         settings=settings("evaluation", drop=("extractors", *[t for t in TABLES if t != "evidence"])),
         seed=config["seed"],
+        data_source=data_source(),
         code=code("generator-evidence"),
     log:
         "logs/evaluation/generator_evidence.log",
@@ -275,7 +280,7 @@ rule generator_evidence:
         **job_resources("generator_evidence"),
     shell:
         "omnilidar generator-evidence --domains {input.domains} --prompts {input.prompts} "
-        "--checkpoint {input.checkpoint} --settings {params.settings:q} --seed {params.seed} "
+        "--checkpoint {input.checkpoint} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
         "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
 
 

@@ -97,7 +97,9 @@ _RULES = {
                            _runtime(sampling_seconds(2 * _EVAL["evidence"]["scans"] * len(config["generator"]["prompts"]),
                                                      _EVAL["steps"])), 2),
     "make_subset": (False, 500, 5, 1),
-    "train_labeler": (config["downstream"]["labeler"]["device"], 16000, _DOWN_H, _downstream_workers("labeler", "schedule")),
+    # Importing a user's checkpoint is a small CPU job; training the labeler is the long GPU one.
+    "train_labeler": ((False, 4000, 15, 1) if config["downstream"]["labeler"]["checkpoint"] else
+                      (config["downstream"]["labeler"]["device"], 16000, _DOWN_H, _downstream_workers("labeler", "schedule"))),
     "pseudo_label": (config["downstream"]["labeler"]["device"], 8000, 60, 2),
     "train_supervised": (config["downstream"]["device"], 16000, _DOWN_H, _downstream_workers("schedule")),
     "train_gda": (config["downstream"]["device"], 16000, _DOWN_H, _downstream_workers("schedule")),

@@ -125,5 +125,5 @@ def test_domain_fidelity_reads_the_first_scans_of_the_index(tmp_path):
                "--figure", str(tmp_path / "fidelity.png"), "--index", str(index)])
     assert rc == 0
     doc = json.loads(out.read_text())
-    assert doc["data_source"] == "synthetic"
+    assert doc["data_source"] == {"semantickitti": {"root": str(root), "kind": "synthetic"}}
     assert [p.rsplit("/", 1)[-1] for p in doc["scans"]] == ["000000.bin", "000001.bin"]

@@ -98,6 +98,19 @@ def test_supervised_runs_and_labeler_take_no_generator_input(workdir):
     assert jobs["train_supervised"] == 1 and jobs["train_labeler"] == 1
 
 
+
+def test_importing_a_labeler_is_a_small_cpu_job(workdir):
+    """Training the labeler asks for the GPU job; importing a checkpoint does not."""
+    from workflow_helpers import snakemake
+
+    (workdir / "user_labeler.pt").write_bytes(b"")
+    trained = snakemake(workdir, "--dry-run", "data/labeler/semantickitti.pt").stdout
+    imported = snakemake(workdir, "--dry-run", "data/labeler/semantickitti.pt",
+                         "--config", 'downstream={"labeler": {"checkpoint": "user_labeler.pt"}}').stdout
+    assert "runtime=600, cpus_per_task=1, slurm_partition=gpu, gpu=1" in trained
+    assert "runtime=15, cpus_per_task=1, slurm_partition=cpu, mem_mb=4000" in imported
+    assert "gpu=" not in imported.split("rule train_labeler:")[-1] and "input: user_labeler.pt" in imported
+
 # Stands in for the omnilidar CLI in the rerun tests: creates the outputs named by
 # --out / --figure (a directory when the name has no file suffix), so that Snakemake
 # runs every job for real and records its params, quickly.

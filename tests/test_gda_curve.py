@@ -26,6 +26,11 @@ from workflow_helpers import copy_workflow, planned_jobs, rerun_reasons, snakema
 
 TINY = "config/test.yaml"
 
+# Every result names the datasets it used (omnilidar.data_source).
+DATA_SOURCE = {"semantickitti": {"root": "/data/kitti", "kind": "real"},
+               "pi3det": {"root": "data/synthetic/pi3det", "kind": "synthetic"}}
+DATA_SOURCE_ARGS = ["--data-source", json.dumps(DATA_SOURCE)]
+
 
 def _shards(root, sizes: list[list[int]], seed: int = 0):
     """Sample shards (velodyne/) and their pseudo-label shards (labels/), scans numbered
@@ -141,7 +146,7 @@ def curve_inputs(tmp_path):
 
 
 def _curve_args(root, evals, samples, benches, pseudo):
-    return ["gda-curve", "--evaluations", *evals, "--samples", *map(str, samples),
+    return ["gda-curve", *DATA_SOURCE_ARGS, "--evaluations", *evals, "--samples", *map(str, samples),
             "--pseudo-labels", *map(str, pseudo), "--out", str(root / "curve.json"),
             "--figure", str(root / "curve.png")]
 
@@ -161,6 +166,7 @@ def test_gda_curve_rows_and_compute(curve_inputs):
     assert rows[2]["trained_generated_scans"] == 3
     for key in ("experiment", "config_hash", "code_hash", "data_source", "device", "seeds", "timings"):
         assert key in doc
+    assert doc["data_source"] == DATA_SOURCE
     assert doc["timings"]["sampling_per_scan"] == 3.0 and doc["timings"]["labeler"] == 30.0
     assert doc["setup"]["backbone"] == "minkunet" and doc["setup"]["domain"] == "vehicle"
     assert (root / "curve.png").stat().st_size > 1000
@@ -211,7 +217,7 @@ def test_sampler_tradeoff_puts_the_curve_rows_in_its_output(fixture_dir, tmp_pat
         {**GOOD_ROW, "generated_scans": 0, "miou": 0.22, "total_seconds": 48.0}]}))
     settings = tradeoff_settings(tradeoff={"samplers": {"ddim": [1]}, "scans": 2, "domains": ["Vehicle"],
                                            "feature_metric": "FRID"})
-    rc = main(["sampler-tradeoff", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+    rc = main(["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
                "--checkpoint", str(r / "model.pt"), "--weights", f"frid={r / 'frid.pt'}", "--gda-curve", str(curve),
                "--settings", settings, "--out", str(tmp_path / "t.json"), "--figure", str(tmp_path / "t.png")])
     assert rc == 0
@@ -235,7 +241,7 @@ def test_sampler_tradeoff_reads_the_curve_before_sampling(tmp_path, capsys):
     assert downstream_curve(None) == ([], None)
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"rows": [{"generated_scans": 1}]}))
-    code = main(["sampler-tradeoff", "--domains", "d.json", "--prompts", "p.pt", "--checkpoint", "m.pt",
+    code = main(["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", "d.json", "--prompts", "p.pt", "--checkpoint", "m.pt",
                  "--gda-curve", str(bad), "--out", str(tmp_path / "t.json"), "--figure", str(tmp_path / "t.png")])
     err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
     assert code == 2 and len(err) == 1 and "bad.json: rows[0] lacks miou" in err[0]

@@ -19,6 +19,11 @@ from omnilidar.report.generation import metric_table, pareto_front, provenance_n
 from real_samples import REAL, require_real
 DOMAINS = ["Vehicle", "Beam32"]
 
+# Every result names the datasets it used (omnilidar.data_source).
+DATA_SOURCE = {"semantickitti": {"root": "/data/kitti", "kind": "real"},
+               "pi3det": {"root": "data/synthetic/pi3det", "kind": "synthetic"}}
+DATA_SOURCE_ARGS = ["--data-source", json.dumps(DATA_SOURCE)]
+
 
 def tiny_generator_settings() -> dict:
     g = section_defaults("generator")
@@ -91,7 +96,7 @@ def _settings(**extra) -> str:
 def test_generation_quality_and_ablation(fixture_dir, capsys):
     r = fixture_dir
     out = r / "gq.json"
-    rc = main(["generation-quality", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+    rc = main(["generation-quality", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
                "--full", str(r / "model.pt"), "--baseline", f"Vehicle={r / 'model.pt'}",
                "--weights", f"frid={r / 'frid.pt'}",
                "--settings", _settings(generation_quality={"metrics": ["FRID", "JSD", "MMD"]}),
@@ -100,6 +105,7 @@ def test_generation_quality_and_ablation(fixture_dir, capsys):
     res = json.loads(out.read_text())
     for key in ("experiment", "config_hash", "code_hash", "data_source", "device", "seeds", "timings"):
         assert key in res
+    assert res["data_source"] == DATA_SOURCE
     assert set(res["scores"]) == set(DOMAINS)
     vehicle = res["scores"]["Vehicle"]
     # same checkpoint and seeds for both methods -> identical samples and scores
@@ -110,7 +116,7 @@ def test_generation_quality_and_ablation(fixture_dir, capsys):
     assert "| Vehicle |" in md and "not with published numbers" in md
     assert (r / "gq.png").stat().st_size > 1000
 
-    rc = main(["ablation-table", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+    rc = main(["ablation-table", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
                "--checkpoint", f"cdts={r / 'model.pt'}", "--checkpoint", f"full={r / 'model.pt'}",
                "--settings", _settings(ablation={"metrics": ["JSD", "MMD"]}),
                "--out", str(r / "abl.json"), "--markdown", str(r / "abl.md"), "--figure", str(r / "abl.png")])
@@ -122,7 +128,7 @@ def test_generation_quality_and_ablation(fixture_dir, capsys):
 
 def test_kitti360_and_evidence(fixture_dir):
     r = fixture_dir
-    rc = main(["kitti360-generation", "--index", str(r / "kitti360.json"), "--prompts", str(r / "prompts.pt"),
+    rc = main(["kitti360-generation", *DATA_SOURCE_ARGS, "--index", str(r / "kitti360.json"), "--prompts", str(r / "prompts.pt"),
                "--full", str(r / "model.pt"), "--weights", f"fpd={r / 'fpd.pt'}",
                "--settings", _settings(kitti360={"metrics": ["FPD", "JSD", "MMD"]}),
                "--out", str(r / "k.json"), "--markdown", str(r / "k.md"), "--figure", str(r / "k.png")])
@@ -130,7 +136,7 @@ def test_kitti360_and_evidence(fixture_dir):
     k = json.loads((r / "k.json").read_text())
     assert k["scores"]["OmniLiDAR"]["FPD"] > 0 and k["paper"]["R2DM"]["FRD"] == 179.43
 
-    rc = main(["generator-evidence", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+    rc = main(["generator-evidence", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
                "--checkpoint", str(r / "model.pt"), "--settings", _settings(evidence={"scans": 2}),
                "--out", str(r / "ev.json"), "--markdown", str(r / "ev.md"), "--figure", str(r / "ev.png")])
     assert rc == 0
@@ -146,7 +152,7 @@ def test_sampler_tradeoff_one_run(fixture_dir):
     r = fixture_dir
     settings = _settings(tradeoff={"samplers": {"ddim": [1, 2], "dpmpp_2m": [1]}, "scans": 2,
                                    "domains": ["Vehicle"], "feature_metric": "FRID"})
-    rc = main(["sampler-tradeoff", "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+    rc = main(["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
                "--checkpoint", str(r / "model.pt"), "--weights", f"frid={r / 'frid.pt'}",
                "--weights", f"fpd={r / 'fpd.pt'}", "--effects", str(r / "effects.json"),
                "--settings", settings,
@@ -238,7 +244,7 @@ def test_generation_quality_reads_sample_shards_as_it_would_sample(fixture_dir, 
     results = {}
     for name, extra in (("sampled", []), ("shards", sets)):
         out = tmp_path / f"{name}.json"
-        assert main(["generation-quality", *args, *extra, "--seed", "0", "--out", str(out),
+        assert main(["generation-quality", *DATA_SOURCE_ARGS, *args, *extra, "--seed", "0", "--out", str(out),
                      "--markdown", str(tmp_path / f"{name}.md"), "--figure", str(tmp_path / f"{name}.png")]) == 0
         results[name] = json.loads(out.read_text())["scores"]
     for dom in DOMAINS:
@@ -247,6 +253,6 @@ def test_generation_quality_reads_sample_shards_as_it_would_sample(fixture_dir, 
             assert a[metric] == pytest.approx(b[metric], rel=1e-5), (dom, metric)
     # A set with fewer scans than asked for is one clear error.
     bad = tmp_path / "bad.json"
-    assert main(["generation-quality", *args, "--samples", f"full/{DOMAINS[0]}={tmp_path / 'nowhere'}", "--seed", "0",
+    assert main(["generation-quality", *DATA_SOURCE_ARGS, *args, "--samples", f"full/{DOMAINS[0]}={tmp_path / 'nowhere'}", "--seed", "0",
                  "--out", str(bad), "--markdown", str(tmp_path / "b.md"), "--figure", str(tmp_path / "b.png")]) == 2
     assert not bad.exists()

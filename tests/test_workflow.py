@@ -118,7 +118,8 @@ def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path):
 
     summary = yaml.safe_load((wd / "results" / "data_summary.json").read_text())
     assert summary["experiment"] == "data_summary"
-    assert summary["data_source"]["semantickitti"] == "synthetic"
+    assert summary["data_source"]["semantickitti"]["kind"] == "synthetic"
+    assert summary["data_source"]["semantickitti"]["root"].endswith("synthetic/semantickitti")
     # Points per scan against real KITTI: test_synthetic_world (it needs the real samples).
     assert (wd / "results" / "figures" / "data_summary.png").stat().st_size > 1000
     assert len(list((wd / "data" / "samples" / "Drone" / "shard_0" / "velodyne").glob("*.bin"))) == 2

@@ -26,3 +26,11 @@ def report_outputs_arg(parser: argparse.ArgumentParser, markdown: bool = True) -
     if markdown:
         parser.add_argument("--markdown", required=True, help="markdown table")
     parser.add_argument("--figure", required=True, help="figure (PNG)")
+
+
+def data_source_arg(parser: argparse.ArgumentParser) -> None:
+    """``--data-source JSON``: every dataset the result used, real or synthetic (omnilidar.data_source)."""
+    from omnilidar.data_source import parse
+
+    parser.add_argument("--data-source", type=parse, required=True,
+                        help='{dataset: {"root": path, "kind": "real" | "synthetic"}} (Snakemake passes it)')

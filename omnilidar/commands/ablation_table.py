@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.commands._common import data_source_arg, report_outputs_arg, seed_arg, settings_arg
 from omnilidar.metrics.sample_sets import sample_set_arg
 
 HELP = "score the ablation presets (single-domain ... full) averaged over domains"
@@ -20,6 +20,7 @@ LABELS = {
 
 def add_arguments(parser) -> None:
     settings_arg(parser)
+    data_source_arg(parser)
     seed_arg(parser)
     parser.add_argument("--domains", required=True)
     parser.add_argument("--prompts", required=True)
@@ -93,7 +94,7 @@ def run(args) -> int:
         metric_table(table, metrics, ["mean"]),
         provenance_note(weights, comparable),
     ])
-    result = envelope("ablation", "ablation-table", settings, {"seed": args.seed}, timings, "domains index",
+    result = envelope("ablation", "ablation-table", settings, {"seed": args.seed}, timings, args.data_source,
                       metrics=metrics, presets=presets, labels={p: LABELS[p] for p in presets},
                       mean={p: {m: metric_value(means[p], m) for m in metrics} for p in presets},
                       weights=weights, comparable_with_paper=comparable, scores=scores)

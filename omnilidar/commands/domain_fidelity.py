@@ -25,12 +25,14 @@ def run(args) -> int:
     from omnilidar.config import validate
     from omnilidar.domains.fidelity import fidelity_report, index_scan_paths, plot_report, read_scans
     from omnilidar.io.atomic import write_text_atomic
+    from omnilidar.data_source import configured_scans
     from omnilidar.lidar.sensors import get_sensor
     from omnilidar.provenance import envelope
 
     settings = validate(dict(args.settings), "domains.schema.yaml", source="--settings")
     cfg = settings["fidelity"]
-    paths, source = args.scans or cfg["scans"], "real"
+    paths = args.scans or cfg["scans"]
+    source = configured_scans(paths)
     if not paths and args.index:
         paths, source = index_scan_paths(args.index, cfg["split"], cfg["max_scans"])
     t0 = time.perf_counter()

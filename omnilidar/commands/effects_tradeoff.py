@@ -27,6 +27,7 @@ def run(args) -> int:
     from omnilidar.domains.fidelity import index_scan_paths, read_scans
     from omnilidar.domains.tradeoff import plot_tradeoff, tradeoff_study
     from omnilidar.io.atomic import write_text_atomic
+    from omnilidar.data_source import configured_scans
     from omnilidar.lidar.sensors import get_sensor
     from omnilidar.provenance import envelope
 

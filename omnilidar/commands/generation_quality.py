@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.commands._common import data_source_arg, report_outputs_arg, seed_arg, settings_arg
 from omnilidar.metrics.sample_sets import sample_set_arg
 
 HELP = "score generated scans of every domain (full model vs single-domain baselines) with JSD/MMD/FRD/FRID/FSVD/FPVD"
@@ -14,6 +14,7 @@ BASELINE = "single-domain (R2DM)"
 
 def add_arguments(parser) -> None:
     settings_arg(parser)
+    data_source_arg(parser)
     seed_arg(parser)
     parser.add_argument("--domains", required=True, help="domains index JSON (the real scans of each domain)")
     parser.add_argument("--prompts", required=True, help="prompt cache from encode-prompts")
@@ -81,7 +82,7 @@ def run(args) -> int:
         provenance_note(weights, comparable),
     ])
     result = envelope("generation_quality", "generation-quality", settings, {"seed": args.seed}, timings,
-                      "synthetic-or-real domains (see the domains index)", metrics=metrics, methods=methods,
+                      args.data_source, metrics=metrics, methods=methods,
                       scans_per_set=n, weights=weights, comparable_with_paper=comparable, scores=scores)
     write_outputs(result, args.out, args.markdown, md)
     samples_figure(args.figure, spec, {k: v for k, v in shown.items() if v})

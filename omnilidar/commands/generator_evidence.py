@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.commands._common import report_outputs_arg, data_source_arg, seed_arg, settings_arg
 
 HELP = "BEV JSD/MMD of trained vs untrained generator samples and per-domain statistics vs real scans"
 DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -12,6 +12,7 @@ STATS = ("empty_row_fraction", "near_range_fraction", "points_per_scan", "mean_e
 
 def add_arguments(parser) -> None:
     settings_arg(parser)
+    data_source_arg(parser)
     seed_arg(parser)
     parser.add_argument("--domains", required=True)
     parser.add_argument("--prompts", required=True)
@@ -92,7 +93,7 @@ def run(args) -> int:
         f"MMD in {summary['trained_closer_MMD']}/{len(out)}. Domain control (Pearson r across domains, real vs "
         "generated statistic): " + ", ".join(f"{k} {f(v)}" for k, v in control.items()) + ".", "", *lines])
     result = envelope("generator_evidence", "generator-evidence", settings, {"seed": args.seed},
-                      {"total": time.perf_counter() - t0}, "domains index", summary=summary, domains=out)
+                      {"total": time.perf_counter() - t0}, args.data_source, summary=summary, domains=out)
     write_outputs(result, args.out, args.markdown, md)
     evidence_figure(args.figure, result)
     print(md)

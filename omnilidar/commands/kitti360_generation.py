@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.commands._common import data_source_arg, report_outputs_arg, seed_arg, settings_arg
 from omnilidar.metrics.sample_sets import sample_set_arg
 
 HELP = "score Vehicle-domain samples against KITTI-360 scans (full model vs single-domain baseline)"
@@ -11,6 +11,7 @@ DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omn
 
 def add_arguments(parser) -> None:
     settings_arg(parser)
+    data_source_arg(parser)
     seed_arg(parser)
     parser.add_argument("--index", required=True, help="KITTI-360 dataset index JSON")
     parser.add_argument("--prompts", required=True)
@@ -72,7 +73,7 @@ def run(args) -> int:
         + " (FRD / FPD / JSD / MMD x1e-4).",
     ])
     result = envelope("kitti360_generation", "kitti360-generation", settings, {"seed": args.seed},
-                      {"total": time.perf_counter() - t0}, f"KITTI-360 index {args.index}", metrics=metrics,
+                      {"total": time.perf_counter() - t0}, args.data_source, metrics=metrics,
                       domain=domain, weights=weights, comparable_with_paper=comparable, scores=scores, paper=paper)
     write_outputs(result, args.out, args.markdown, md)
     samples_figure(args.figure, spec, shown)

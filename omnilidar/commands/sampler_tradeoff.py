@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import report_outputs_arg, seed_arg, settings_arg
+from omnilidar.commands._common import data_source_arg, report_outputs_arg, seed_arg, settings_arg
 from omnilidar.metrics.sample_sets import sample_set_arg
 
 HELP = "measure per-domain JSD/MMD/feature metric and seconds per scan for every sampler and step count"
@@ -14,6 +14,7 @@ TOLERANCE = 1.10
 
 def add_arguments(parser) -> None:
     settings_arg(parser)
+    data_source_arg(parser)
     seed_arg(parser)
     parser.add_argument("--domains", required=True)
     parser.add_argument("--prompts", required=True)
@@ -135,7 +136,7 @@ def run(args) -> int:
     w, comparable = collect_weights({i: p["per_domain"] for i, p in enumerate(points)})
     result = envelope(
         "tradeoff", "sampler-tradeoff", settings, {"seed": args.seed}, {"sampling_study": time.perf_counter() - t_all},
-        "domains index", device_note="timings measured in this one run on the device named above",
+        args.data_source, device_note="timings measured in this one run on the device named above",
         feature_metric=feat, domains=domains, scans_per_setting=cfg["scans"], real_scans=settings["scans_per_set"],
         weights=w, comparable_with_paper=comparable, points=points, recommended=recommended,
         recommend_rule=f"fastest setting whose mean metric is within {TOLERANCE:.2f}x of the best",

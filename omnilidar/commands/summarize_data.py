@@ -43,6 +43,7 @@ def run(args):
     from tqdm import tqdm
 
     from omnilidar.data.index import read_index
+    from omnilidar.data_source import record
     from omnilidar.data.reference_stats import semantickitti_class_fraction
     from omnilidar.data.synthetic.statistics import scan_statistics
     from omnilidar.io import semantickitti
@@ -56,7 +57,7 @@ def run(args):
     groups, sources = {}, {}
     for path in args.indexes:
         index = read_index(path)
-        sources[index["dataset"]] = "synthetic" if index.get("source") == "synthetic" else index["root"]
+        sources[index["dataset"]] = record(index["root"], index.get("source") == "synthetic")
         for group, entries in _group_entries(index).items():
             if len(entries) > max_scans:  # a seeded, order-preserving subset
                 entries = [entries[i] for i in np.sort(rng.choice(len(entries), max_scans, replace=False))]

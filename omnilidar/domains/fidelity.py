@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from omnilidar.data_source import record
 from omnilidar.domains import ground as ground_estimation
 from omnilidar.domains.source import load_index, split_entries
 from omnilidar.domains.spec import effect_module
@@ -93,14 +94,14 @@ def read_scans(paths: list[str | Path]) -> list[tuple[str, Scan]]:
     return [(str(p), semantickitti.read_scan(p)) for p in paths]
 
 
-def index_scan_paths(index_path: str | Path, split: str, count: int) -> tuple[list[str], str]:
+def index_scan_paths(index_path: str | Path, split: str, count: int) -> tuple[list[str], dict]:
     """The first ``count`` scans of one split of a SemanticKITTI index (in the embedded default the
-    synthetic world's full HDL-64E sweeps) and where they come from: "synthetic" or the index's root."""
+    synthetic world's full HDL-64E sweeps) and where they come from (a ``data_source`` record)."""
     index = load_index(index_path, "semantickitti")
     entries = split_entries(index, split, index_path)
     if not entries:
         raise InputError(index_path, f"split {split!r} holds no scans")
-    source = "synthetic" if index.get("source") == "synthetic" else str(index.get("root"))
+    source = {index.get("dataset", "index"): record(str(index.get("root")), index.get("source") == "synthetic")}
     return [entry["points"] for entry in entries[:count]], source
 
 
