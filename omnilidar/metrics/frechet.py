@@ -17,16 +17,16 @@ F1^T F2 and
 ``trace_sqrt_product`` restricts both covariances to their common support (rows
 exactly zero in either, dead feature units, add only zero eigenvalues), then
 takes each factor from a Cholesky factorisation when the covariance is positive
-definite, else from ``eigh`` over the eigenvalues above the
-round-off level of that solve (below it the computed covariance carries no
-information; this is what keeps round-off noise of a singular covariance out of
-the sum). The squared singular values of G = F1^T F2 are the eigenvalues of the
-smaller of G G^T and G^T G, positive semi-definite by construction: negative
-ones are round-off and count as 0, and no positive one is dropped. (An earlier
-version dropped eigenvalues of F1^T S2 F1 below 10 D eps x the largest; at
-1024-d with features whose variances span three decades that lost genuine ones
-and was 1e-5 relative off; now 1e-14. ``svdvals(G)`` would be more accurate
-still for spectra spanning 1e-16, but costs twice as much.)
+definite, else from ``eigh`` over the eigenvalues above the round-off level of
+that solve (below it the computed covariance carries no information; this keeps
+round-off noise of a singular covariance out of the sum). The squared singular
+values of G = F1^T F2 are the eigenvalues of the smaller of G G^T and G^T G,
+positive semi-definite by construction: negative ones are round-off and count
+as 0, and no positive one is dropped. (An earlier version dropped eigenvalues of
+F1^T S2 F1 below 10 D eps x the largest: at 1024-d with feature standard
+deviations spread over three decades it lost genuine ones and was 1e-5 relative
+off; now 1e-14. ``svdvals(G)`` would be more accurate still for spectra
+spanning 1e-16, but costs twice as much.)
 
 With the features themselves at hand (``frechet_from_features``) the same
 identity gives the Gram route when samples are fewer than dimensions: with
