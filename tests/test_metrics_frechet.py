@@ -202,3 +202,58 @@ def test_auto_picks_covariance_route_for_many_samples():
 def test_bad_input_raises_input_error(call, message):
     with pytest.raises(InputError, match=message.replace("(", r"\(").replace(")", r"\)")):
         call()
+
+
+def _graded_features(rng, n, d, decades):
+    """Features whose variances span `decades` decades, correlated, with a mean shift."""
+    scales = np.logspace(0.0, -decades / 2.0, d)
+    a = rng.standard_normal((n, d)) * scales
+    mix = rng.standard_normal((d, d)) / np.sqrt(d)
+    b = (rng.standard_normal((n, d)) @ mix * 0.3 + rng.standard_normal((n, d))) * scales * 1.3 + 0.1
+    return a, b
+
+
+@pytest.mark.parametrize("n, d", [(900, 512), (300, 512)])
+def test_routes_agree_on_graded_spectra(n, d):
+    """Variances over six decades: eigenvalues of S1 S2 down to ~1e-13 of the
+    largest are genuine and must all count (more and fewer samples than dims)."""
+    a, b = _graded_features(np.random.default_rng(7), n, d, decades=6)
+    gram = frechet_from_features(a, b, method="gram")
+    cov = frechet_from_features(a, b, method="covariance")
+    assert cov == pytest.approx(gram, rel=1e-11)
+    assert frechet_from_features(b, a, method="covariance") == pytest.approx(gram, rel=1e-11)
+
+
+def test_dead_feature_units_keep_the_cholesky_route():
+    """Exactly zero features (dead ReLU units) make the covariance singular only
+    on those rows: the rest is still factored without dropping anything."""
+    a, b = _graded_features(np.random.default_rng(8), 700, 256, decades=6)
+    a[:, :40] = 0.0
+    b[:, 20:50] = 0.0
+    gram = frechet_from_features(a, b, method="gram")
+    assert frechet_from_features(a, b, method="covariance") == pytest.approx(gram, rel=1e-11)
+
+
+def _reflect(diagonal: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """H_k ... H_1 diag(d) H_1 ... H_k for Householder reflectors H = I - 2 v v^T:
+    a dense covariance with known eigenvalues, in O(k D^2)."""
+    s = np.diag(diagonal)
+    for v in normals:
+        sv = s @ v
+        s += 4.0 * (v @ sv) * np.outer(v, v) - 2.0 * np.outer(v, sv) - 2.0 * np.outer(sv, v)
+    return s
+
+
+def test_commuting_covariances_at_4096_dims():
+    """S1 = Q diag(a) Q^T, S2 = Q diag(b) Q^T with spectra over eight decades:
+    d^2 = |mu1 - mu2|^2 + sum (sqrt(a_i) - sqrt(b_i))^2 exactly."""
+    rng = np.random.default_rng(9)
+    d = 4096
+    normals = rng.standard_normal((2, d))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    a = rng.permutation(np.logspace(0.0, -8.0, d))
+    b = rng.permutation(np.logspace(1.0, -7.0, d))
+    mu1, mu2 = rng.standard_normal(d), rng.standard_normal(d) * 0.1
+    expected = np.sum((mu1 - mu2) ** 2) + np.sum((np.sqrt(a) - np.sqrt(b)) ** 2)
+    got = frechet_distance(mu1, _reflect(a, normals), mu2, _reflect(b, normals))
+    assert got == pytest.approx(expected, rel=1e-11)
