@@ -191,3 +191,12 @@ def test_changed_scan_contents_start_fresh_and_more_iterations_resume(tmp_path, 
                              inputs=inputs)
     assert longer["resumed_from"] == 3 and longer["iterations"] == 4
     assert "resuming at iteration 3" in capsys.readouterr().out
+
+
+def test_evaluation_logs_progress_lines(trained, capsys):
+    """Long evaluations report done/total, seconds per scan and an ETA in their logs."""
+    root, real, val, out, summary = trained
+    model, payload = load_segmentor(out, device="cpu")
+    evaluate_records(model, val, SPACE, payload["voxel_size"])
+    lines = [l for l in capsys.readouterr().out.splitlines() if l.startswith("evaluated scans:")]
+    assert lines and lines[-1].startswith(f"evaluated scans: {len(val)}/{len(val)},") and "ETA 0 s" in lines[-1]

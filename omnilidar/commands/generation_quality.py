@@ -38,6 +38,7 @@ def run(args) -> int:
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
     from omnilidar.metrics.generation import compare, real_domain_images, sample_images, set_features
     from omnilidar.metrics.sample_sets import generated_set, parse_sample_sets
+    from omnilidar.progress import ProgressLog
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import (collect_weights, metric_table, provenance_note, samples_figure,
                                              write_outputs)
@@ -54,6 +55,7 @@ def run(args) -> int:
     spec = range_image_spec(payload["config"])
     timings, scores, shown = {}, {}, {"Real": {}, FULL: {}, BASELINE: {}}
     t_all = time.perf_counter()
+    progress = ProgressLog(len(payload["domains"]), "domains scored", every_s=0)
     for domain in payload["domains"]:
         t0 = time.perf_counter()
         real_imgs = real_domain_images(args.domains, domain, spec.shape, n)
@@ -72,6 +74,7 @@ def run(args) -> int:
             shown[BASELINE][domain] = bgen[0]
         timings[domain] = time.perf_counter() - t0
         print(f"{domain}: " + ", ".join(f"{m} {scores[domain][FULL].get(m)}" for m in metrics), flush=True)
+        progress.step()
     timings["total"] = time.perf_counter() - t_all
     methods = [m for m in (BASELINE, FULL) if any(m in s for s in scores.values())]
     weights, comparable = collect_weights(scores)

@@ -21,6 +21,7 @@ from omnilidar.downstream.seg.label_spaces import LabelSpace, get_label_space
 from omnilidar.downstream.seg.models import restore
 from omnilidar.devices import resolve_device
 from omnilidar.errors import InputError
+from omnilidar.progress import ProgressLog
 from omnilidar.io import semantickitti
 from omnilidar.metrics.segmentation import ConfusionMatrix
 
@@ -63,6 +64,7 @@ def evaluate_records(model: torch.nn.Module, records: list[dict], space: LabelSp
     conf = ConfusionMatrix(space.num_ids)
     started = time.time()
     points_total = 0
+    progress = ProgressLog(len(data), "evaluated scans")
     for start in range(0, len(data), batch_size):
         items = [data[i] for i in range(start, min(start + batch_size, len(data)))]
         preds = predict_points(model, [it["points"] for it in items], voxel_size, space.num_ids,
@@ -70,6 +72,7 @@ def evaluate_records(model: torch.nn.Module, records: list[dict], space: LabelSp
         for it, pred in zip(items, preds):
             conf.update(it["labels"], pred, it["path"])
             points_total += len(pred)
+        progress.step(len(items))
     scores = conf.result()
     return {
         **scores.as_dict(list(space.class_names)),
