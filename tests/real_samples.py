@@ -7,15 +7,14 @@ real sensor data read them (readers on the real formats, real ring order, effect
 measured on real geometry, agreement with numbers measured on real scans); tests
 that merely need some full sweep use the synthetic one (conftest.py). Without the
 samples, or without one of the files a test names, that test skips with one reason
-and every other test runs. Benchmarks stop with one line instead (``real_files_or_exit``).
+and every other test runs. Benchmarks (which put tests/ on sys.path) stop with one line
+instead: ``real_files_or_exit``; pytest is imported only by the test helpers.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-
-import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = (ROOT / os.environ.get("OMNILIDAR_REAL_DATA", "../shared/data/real")).resolve()
@@ -44,17 +43,21 @@ def skip_reason(*files) -> str | None:
     if not REAL.is_dir():
         return REASON
     absent = [f for f in _flatten(files) if not (REAL / f).is_file()]
-    return f"{REASON}: {', '.join(absent)} missing" if absent else None
+    return f"real LiDAR samples at {REAL} lack {', '.join(absent)} (set OMNILIDAR_REAL_DATA)" if absent else None
 
 
-def needs_real(*files) -> pytest.MarkDecorator:
+def needs_real(*files):
     """Mark for tests that read ``files``: @needs_real(KITTI_SCANS) or pytestmark = needs_real(...)."""
+    import pytest
+
     reason = skip_reason(*files)
     return pytest.mark.skipif(reason is not None, reason=reason or "")
 
 
 def require_real(*files) -> Path:
     """The samples' folder; skips the calling test (or fixture's tests) unless ``files`` are all there."""
+    import pytest
+
     reason = skip_reason(*files)
     if reason is not None:
         pytest.skip(reason)
