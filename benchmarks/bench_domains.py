@@ -17,6 +17,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # one core, as the targets are st
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -30,9 +31,8 @@ from omnilidar.domains.spec import domains_from_settings  # noqa: E402
 from omnilidar.io import semantickitti  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-SCANS = [REAL / "kitti_object" / "velodyne" / "000000.bin", REAL / "kitti_object" / "velodyne" / "000001.bin",
-         REAL / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin"]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import KITTI_SCANS, SEMANTICKITTI_SCAN, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 # Anchors' seconds per scan (REFERENCE.md section 4), for the ratio column.
 ANCHOR_S = {"fog": 0.6, "wet_ground": 0.065, "snow": 38.0, "rain": 8.0}
 
@@ -53,9 +53,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    scans = [semantickitti.read_scan(p) for p in SCANS if p.is_file()]
-    if not scans:
-        raise SystemExit(f"no real scans under {REAL}")
+    scans = [semantickitti.read_scan(p) for p in real_files_or_exit(KITTI_SCANS, SEMANTICKITTI_SCAN)]
     sensor = PRESETS["kitti_hdl64e"]
     spec = RangeImageSpec.from_sensor(sensor)
     print(f"{len(scans)} real scans ({', '.join(str(len(s)) for s in scans)} points), {args.repeats} repeats, "

@@ -1,7 +1,7 @@
 """Segmentation training speed and peak memory per backbone and sparse backend.
 
 One training step = forward, cross-entropy, backward and SGD step on a batch of
-real KITTI scans (../shared/data/real/kitti_object, random train ids) at the
+real KITTI scans (kitti_object in OMNILIDAR_REAL_DATA, random train ids) at the
 CPU default's voxel size (and the reference 0.05 m on CUDA). Each configuration
 runs in its own process so that its peak memory (max RSS on CPU, max allocated
 on CUDA) is its own. Prints the median step time, iterations per second, peak
@@ -21,7 +21,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-REAL = ROOT.parent / "shared" / "data" / "real" / "kitti_object" / "velodyne"
+sys.path.insert(0, str(ROOT / "tests"))
+from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 
 
 def one(backbone: str, backend: str, width: str, voxel: float, batch: int, steps: int, device: str) -> dict:
@@ -36,7 +37,7 @@ def one(backbone: str, backend: str, width: str, voxel: float, batch: int, steps
 
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
-    scans = [semantickitti.read_points(p) for p in sorted(REAL.glob("*.bin"))]
+    scans = [semantickitti.read_points(p) for p in real_files_or_exit(KITTI_SCANS)]
     items = [{"points": scans[i % len(scans)], "labels": rng.integers(0, 20, len(scans[i % len(scans)])).astype(np.uint8),
               "path": None, "draw": i} for i in range(batch)]
     batch_data = SegCollate(20, voxel, 80000, 0)(items)["batch"].to(device)
@@ -75,6 +76,7 @@ def main() -> None:
     if args.child:
         print(json.dumps(one(**json.loads(args.child))))
         return
+    real_files_or_exit(KITTI_SCANS)  # one line now, not one per child
     import torch
 
     from omnilidar.errors import InputError

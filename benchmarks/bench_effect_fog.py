@@ -8,6 +8,7 @@ import os
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ[_var] = "1"
 
+import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -17,13 +18,14 @@ from omnilidar.domains.effects import fog  # noqa: E402
 from omnilidar.lidar.scan import Scan  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_object" / "velodyne"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 SENSOR = PRESETS["kitti_hdl64e"]
 REPEATS = 15
 
 
 def load(name: str) -> Scan:
-    return Scan(np.fromfile(REAL / f"{name}.bin", np.float32).reshape(-1, 4))
+    return Scan(np.fromfile(real_files_or_exit(f"kitti_object/velodyne/{name}.bin")[0], np.float32).reshape(-1, 4))
 
 
 def timing(scan: Scan) -> None:

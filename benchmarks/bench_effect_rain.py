@@ -17,6 +17,7 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMB
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -27,12 +28,13 @@ from omnilidar.domains.effects._mie import mie_efficiencies  # noqa: E402
 from omnilidar.lidar.scan import Scan  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_object" / "velodyne"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 SENSOR = PRESETS["kitti_hdl64e"]
 
 
 def load(name: str) -> Scan:
-    return Scan(np.fromfile(REAL / f"{name}.bin", np.float32).reshape(-1, 4))
+    return Scan(np.fromfile(real_files_or_exit(f"kitti_object/velodyne/{name}.bin")[0], np.float32).reshape(-1, 4))
 
 
 def timed(scan: Scan, params: dict, seeds, fidelity=None):
@@ -51,6 +53,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="fewer seeds, moderate-only sweep")
     args = ap.parse_args()
+    real_files_or_exit(KITTI_SCANS)  # one line before any table
     seeds = range(3 if args.quick else 7)
 
     print("== extinction alpha (1/m) vs LISA's measured values")

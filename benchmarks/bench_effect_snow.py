@@ -10,6 +10,7 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMB
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -19,7 +20,8 @@ from omnilidar.domains.effects import snow  # noqa: E402
 from omnilidar.lidar.scan import Scan  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_object" / "velodyne"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 ANCHOR_S = 35.0  # anchor: ~35-42 s CPU per scan (REFERENCE 4)
 
 
@@ -30,7 +32,7 @@ def main():
     ap.add_argument("--no-sweep", action="store_true")
     args = ap.parse_args()
     sensor = PRESETS["kitti_hdl64e"]
-    scans = {name: Scan(np.fromfile(REAL / f"{name}.bin", np.float32).reshape(-1, 4)) for name in ("000000", "000001")}
+    scans = {p.stem: Scan(np.fromfile(p, np.float32).reshape(-1, 4)) for p in real_files_or_exit(KITTI_SCANS)}
     scan = scans["000001"]
     print(f"snow on kitti_object/velodyne/000001.bin ({len(scan)} points), one thread, fidelity {snow.DEFAULT_FIDELITY}")
     print(f"{'severity':9s} {'median_s':>9s} {'anchor/ours':>11s}")

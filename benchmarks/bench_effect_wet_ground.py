@@ -19,6 +19,7 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMB
 
 import argparse  # noqa: E402
 import statistics  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -29,12 +30,8 @@ from omnilidar.domains.ground import estimate_ground  # noqa: E402
 from omnilidar.lidar.scan import Scan  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-SCANS = [
-    REAL / "kitti_object" / "velodyne" / "000000.bin",
-    REAL / "kitti_object" / "velodyne" / "000001.bin",
-    REAL / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin",
-]
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import KITTI_SCANS, SEMANTICKITTI_SCAN, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 SENSOR = PRESETS["kitti_hdl64e"]
 
 
@@ -57,15 +54,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--seeds", type=int, default=3)
     args = ap.parse_args()
+    scans = real_files_or_exit(KITTI_SCANS, SEMANTICKITTI_SCAN)
     rng = np.random.default_rng(0)
 
     print("fidelity per scan and severity (fractions of all points; shift of changed ground points)")
     print(f"{'scan':>22} {'severity':>9} {'changed':>8} {'lost':>7} {'added':>6} {'lost/gnd':>8} "
           f"{'rel.shift':>9} {'abs.shift':>9} {'ms':>7} {'gnd ms':>7}")
-    for path in SCANS:
-        if not path.is_file():
-            print(f"skip {path} (missing)")
-            continue
+    for path in scans:
         scan = load(path)
         ground = estimate_ground(scan, SENSOR)
         t_ground = median_s(lambda: estimate_ground(scan, SENSOR), max(3, args.repeats // 3))
@@ -83,9 +78,9 @@ def main() -> None:
                   f"{info['lost'].sum() / max(ground.sum(), 1):8.4f} {rel:9.4f} {stats['mean_shift']:9.4f} "
                   f"{t * 1e3:7.2f} {t_ground * 1e3:7.2f}")
 
-    scan = load(SCANS[1])
+    scan = load(scans[1])
     seeds = list(range(args.seeds))
-    print(f"\naccuracy/time sweep on {SCANS[1].name} (one knob varied, the other at highest fidelity "
+    print(f"\naccuracy/time sweep on {scans[1].name} (one knob varied, the other at highest fidelity "
           f"{W.HIGHEST_FIDELITY}; errors vs highest, mean over {len(seeds)} seeds)")
     print(f"{'severity':>9} {'knob':>11} {'value':>6} {'ms':>7} {'x vs top':>8} {'lost':>7} {'err lost':>9} {'err shift':>9}")
     for sev in W.SEVERITIES:

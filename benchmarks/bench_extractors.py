@@ -3,7 +3,7 @@
     python benchmarks/bench_extractors.py [--height 32] [--width 256] [--scans 4] [--repeats 3] [--official-size]
 
 Each extractor runs on batches of --scans range images projected from the real
-KITTI scans in ../shared/data/real (randomly initialised networks: speed does not
+KITTI scans in OMNILIDAR_REAL_DATA (randomly initialised networks: speed does not
 depend on the weights). Default sizes are the CPU self-trained ones
 (evaluation.extractors.arch); --official-size uses the published widths
 (RangeNet width 32). Prints the median seconds per scan and scans per second.
@@ -11,6 +11,7 @@ depend on the weights). Default sizes are the CPU self-trained ones
 
 import argparse
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -22,7 +23,8 @@ from omnilidar.io.semantickitti import read_points
 from omnilidar.metrics.extractors.views import range_views
 from omnilidar.metrics.extractors.weights import build_model, wrap
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_object" / "velodyne"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 
 
 def main() -> None:
@@ -35,7 +37,7 @@ def main() -> None:
     args = ap.parse_args()
     spec = RangeImageSpec(args.height, args.width, 3.0, -25.0, 1.45, 80.0)
     imgs = []
-    for f in sorted(REAL.glob("*.bin")):
+    for f in real_files_or_exit(KITTI_SCANS):
         proj = project(read_points(f), spec)
         imgs.append(encode(proj.range_img, proj.intensity_img, spec))
     batch = np.stack([imgs[i % len(imgs)] for i in range(args.scans)])

@@ -9,6 +9,7 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMB
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -18,7 +19,8 @@ from omnilidar.data.range_image import RangeImageSpec, decode, encode, project, 
 from omnilidar.data.rings import recover_rings  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
-SCAN = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real" / "kitti_object" / "velodyne" / "000001.bin"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 
 
 def median_ms(fn, repeats):
@@ -35,7 +37,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=30)
     args = ap.parse_args()
-    pts = np.fromfile(SCAN, np.float32).reshape(-1, 4)
+    (scan,) = real_files_or_exit("kitti_object/velodyne/000001.bin")
+    pts = np.fromfile(scan, np.float32).reshape(-1, 4)
     spec = RangeImageSpec.from_sensor(PRESETS["kitti_hdl64e"])
     proj = project(pts, spec)
     img = encode(proj.range_img, proj.intensity_img, spec)
@@ -48,7 +51,7 @@ def main():
         ("unproject", median_ms(lambda: unproject(d, i, spec, mask=m), args.repeats), n_pix),
         ("recover_rings", median_ms(lambda: recover_rings(pts, PRESETS["kitti_hdl64e"]), max(5, args.repeats // 4)), len(pts)),
     ]
-    print(f"scan {SCAN.name}: {len(pts)} points, image {spec.height}x{spec.width}, {n_pix} returns; 1 thread")
+    print(f"scan {scan.name}: {len(pts)} points, image {spec.height}x{spec.width}, {n_pix} returns; 1 thread")
     print(f"{'stage':<15}{'median ms':>11}{'points/s':>14}")
     for name, ms, count in rows:
         print(f"{name:<15}{ms:>11.2f}{count / (ms * 1e-3):>14.3e}")

@@ -2,7 +2,7 @@
 
 One training iteration = voxelise nothing (done once), forward, cross-entropy,
 backward, SGD step; kernel maps are rebuilt every iteration as they are for a
-new scan. Input: the real SemanticKITTI scan 00/000000 from ../shared/data/real,
+new scan. Input: the real SemanticKITTI scan 00/000000 from OMNILIDAR_REAL_DATA,
 voxelised at 0.05 m and capped at 80k voxels (the reference training setting),
 with random labels. Each (backbone, backend) runs in its own subprocess so that
 ``ru_maxrss`` is that configuration's peak resident memory.
@@ -27,7 +27,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-SCAN = ROOT.parent / "shared" / "data" / "real" / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin"
+sys.path.insert(0, str(ROOT / "tests"))
+from real_samples import SEMANTICKITTI_SCAN, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 BACKBONES = ("minkunet", "spvcnn")
 BACKENDS = ("torch", "spconv")
 
@@ -50,7 +51,7 @@ def one(args) -> dict:
         problem = spconv_backend.self_check("cpu")
         if problem is not None:
             return {"status": f"refused: {problem}"}
-    points = read_points(SCAN)
+    points = read_points(real_files_or_exit(SEMANTICKITTI_SCAN)[0])
     if args.crop:
         points = points[(abs(points[:, 0]) < args.crop) & (abs(points[:, 1]) < args.crop)]
     rng = np.random.default_rng(0)
@@ -96,6 +97,7 @@ def main() -> None:
         print(json.dumps(one(args)))
         return
 
+    real_files_or_exit(SEMANTICKITTI_SCAN)  # one line now, not one per child
     forwarded = [a for a in sys.argv[1:]]
     results = {}
     for backbone in BACKBONES:

@@ -2,7 +2,7 @@
 
     python benchmarks/compare_synthetic_real.py FIGURE.png [--scenes 4] [--scans-per-scene 2]
 
-Real data: the three full HDL-64E sweeps in ../shared/data/real (two KITTI
+Real data: the three full HDL-64E sweeps in OMNILIDAR_REAL_DATA (two KITTI
 object scans and SemanticKITTI 00/000000). Those have no per-point labels (the
 labelled sample there has only 50 points), so class frequencies are compared
 with the published SemanticKITTI training-set statistics instead: the
@@ -13,12 +13,14 @@ with the published SemanticKITTI training-set statistics instead: the
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-REAL = ROOT.parent / "shared" / "data" / "real"
+sys.path.insert(0, str(ROOT / "tests"))
+from real_samples import real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 REAL_SCANS = ("kitti_object/velodyne/000000.bin", "kitti_object/velodyne/000001.bin",
               "semantickitti/sequences/00/velodyne/000000.bin")
 
@@ -40,6 +42,7 @@ def main() -> None:
     parser.add_argument("--scans-per-scene", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    real_scans = real_files_or_exit(REAL_SCANS)
 
     import matplotlib
 
@@ -59,7 +62,7 @@ def main() -> None:
         _, scans = simulate_sequence(settings, entropy, k, "kitti_hdl64e", "vehicle", args.scans_per_scene, 10.0)
         synth.extend(scans)
     s = scan_statistics(synth)
-    r = scan_statistics([read_scan(REAL / p) for p in REAL_SCANS])
+    r = scan_statistics([read_scan(p) for p in real_scans])
 
     print(f"synthetic: {s['num_scans']} scans from {args.scenes} scenes; real: {r['num_scans']} KITTI sweeps")
     print(f"{'quantity':<34}{'synthetic':>12}{'real':>12}")

@@ -1,4 +1,4 @@
-"""Dataset I/O speed on the real samples: validated readers/writers vs bare numpy.
+"""Dataset I/O speed on the real samples (OMNILIDAR_REAL_DATA): validated readers/writers vs bare numpy.
 
 Prints the median time of each operation and its ratio to the bare-numpy
 baseline (the cost of validation and atomic writes). Run:
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -19,9 +20,8 @@ import numpy as np
 from omnilidar.io import kitti_object, nuscenes, semantickitti
 from omnilidar.lidar.boxes import points_in_boxes
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-KITTI = REAL / "kitti_object" / "velodyne" / "000001.bin"
-NUSC = REAL / "nuscenes" / "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import NUSCENES_SWEEP, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 
 
 def median_ms(fn, repeats: int) -> float:
@@ -43,17 +43,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=30)
     r = parser.parse_args().repeats
+    kitti, nusc, label, calib = real_files_or_exit(
+        "kitti_object/velodyne/000001.bin", NUSCENES_SWEEP, "kitti_object/label_2/000001.txt",
+        "kitti_object/calib/000001.txt")
 
-    scan = semantickitti.read_scan(KITTI)
-    print(f"KITTI scan: {len(scan)} points; nuScenes sweep: {len(nuscenes.read_points(NUSC))} points")
+    scan = semantickitti.read_scan(kitti)
+    print(f"KITTI scan: {len(scan)} points; nuScenes sweep: {len(nuscenes.read_points(nusc))} points")
 
-    base = median_ms(lambda: np.fromfile(KITTI, np.float32).reshape(-1, 4), r)
+    base = median_ms(lambda: np.fromfile(kitti, np.float32).reshape(-1, 4), r)
     row("np.fromfile KITTI .bin", base)
-    row("semantickitti.read_scan", median_ms(lambda: semantickitti.read_scan(KITTI), r), base)
+    row("semantickitti.read_scan", median_ms(lambda: semantickitti.read_scan(kitti), r), base)
 
-    base = median_ms(lambda: np.fromfile(NUSC, np.float32).reshape(-1, 5), r)
+    base = median_ms(lambda: np.fromfile(nusc, np.float32).reshape(-1, 5), r)
     row("np.fromfile nuScenes .pcd.bin", base)
-    row("nuscenes.read_scan", median_ms(lambda: nuscenes.read_scan(NUSC), r), base)
+    row("nuscenes.read_scan", median_ms(lambda: nuscenes.read_scan(nusc), r), base)
 
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "x.bin"
@@ -68,15 +71,13 @@ def main() -> None:
         row("semantickitti.read_label", median_ms(lambda: semantickitti.read_label(lab, len(scan)), r), base)
         row("to_train_ids (LUT)", median_ms(lambda: semantickitti.to_train_ids(labels), r))
 
-    boxes = kitti_object.read_boxes_lidar(REAL / "kitti_object" / "label_2" / "000001.txt",
-                                          REAL / "kitti_object" / "calib" / "000001.txt")
+    boxes = kitti_object.read_boxes_lidar(label, calib)
     row(f"points_in_boxes {len(scan)} pts x {len(boxes)} boxes", median_ms(lambda: points_in_boxes(scan.points, boxes), r))
     rng = np.random.default_rng(0)
     many = np.column_stack([rng.uniform(-40, 40, (50, 2)), rng.uniform(-1, 0, 50),
                             rng.uniform(1, 5, (50, 3)), rng.uniform(-np.pi, np.pi, 50)])
     row(f"points_in_boxes {len(scan)} pts x 50 boxes", median_ms(lambda: points_in_boxes(scan.points, many), r))
-    row("read_boxes_lidar (label + calib)", median_ms(lambda: kitti_object.read_boxes_lidar(
-        REAL / "kitti_object" / "label_2" / "000001.txt", REAL / "kitti_object" / "calib" / "000001.txt"), r))
+    row("read_boxes_lidar (label + calib)", median_ms(lambda: kitti_object.read_boxes_lidar(label, calib), r))
 
 
 if __name__ == "__main__":

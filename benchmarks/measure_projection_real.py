@@ -5,6 +5,7 @@ ring-recovery agreement with the firing-order reference (KITTI) and the true rin
     python benchmarks/measure_projection_real.py
 """
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,16 +14,16 @@ from omnilidar.data.range_image import RangeImageSpec, decode, encode, project
 from omnilidar.data.rings import recover_rings
 from omnilidar.lidar.sensors import PRESETS
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
-KITTI = sorted((REAL / "kitti_object" / "velodyne").glob("*.bin"))
-NUSC = next((REAL / "nuscenes").glob("*.pcd.bin"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from real_samples import KITTI_SCANS, NUSCENES_SWEEP, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 
 
 def projection_table():
+    kitti = real_files_or_exit(KITTI_SCANS)
     sensor = PRESETS["kitti_hdl64e"]
     print("Projection round trip, KITTI preset (+3/-25 deg, 1.45 < r < 80 m)")
     print(f"{'scan':<12}{'image':>10}{'valid px':>10}{'survive':>9}{'med rel err':>13}{'max rel err':>13}{'max abs err m':>15}")
-    for path in KITTI:
+    for path in kitti:
         pts = np.fromfile(path, np.float32).reshape(-1, 4)
         for width in (1024, 2048, 4096):
             spec = RangeImageSpec.from_sensor(sensor, width=width)
@@ -49,7 +50,7 @@ def ring_table():
     print(f"{'scan':<34}{'subset':<22}{'nominal':>9}{'calibrated':>12}")
     sensor = PRESETS["kitti_hdl64e"]
     rng = np.random.default_rng(0)
-    for path in KITTI:
+    for path in real_files_or_exit(KITTI_SCANS):
         pts = np.fromfile(path, np.float32).reshape(-1, 4)
         ref = _firing_order_rings(pts)
         az = np.arctan2(pts[:, 1], pts[:, 0])
@@ -65,7 +66,7 @@ def ring_table():
             nom = (recover_rings(pts[sel], sensor, calibrate=False) == ref[sel]).mean()
             cal = (recover_rings(pts[sel], sensor) == ref[sel]).mean()
             print(f"{'kitti ' + path.stem:<34}{name:<22}{nom:>9.4f}{cal:>12.4f}")
-    raw = np.fromfile(NUSC, np.float32).reshape(-1, 5)
+    raw = np.fromfile(real_files_or_exit(NUSCENES_SWEEP)[0], np.float32).reshape(-1, 5)
     sensor = PRESETS["nuscenes_hdl32e"]
     truth = 31 - raw[:, 4].astype(np.int64)  # nuScenes counts rings bottom-up
     r = np.linalg.norm(raw[:, :3], axis=1)

@@ -29,18 +29,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 from ground_scenes import make_scene, platform_sensors, tilted  # noqa: E402
+from real_samples import KITTI_SCANS, SEMANTICKITTI_SCAN, SEMANTICKITTI_TINY, real_files_or_exit  # noqa: E402
 
 from omnilidar.domains.ground import estimate_ground, ground_truth_mask, mask_scores  # noqa: E402
 from omnilidar.lidar.scan import Scan  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
-REAL = ROOT.parent / "shared" / "data" / "real"
-KITTI_SCANS = [
-    REAL / "kitti_object" / "velodyne" / "000000.bin",
-    REAL / "kitti_object" / "velodyne" / "000001.bin",
-    REAL / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin",
-]
-TINY = REAL / "semantickitti_tiny" / "sequences" / "00"
 
 
 def synthetic_table(n_scenes: int) -> None:
@@ -73,10 +67,7 @@ def real_table(figure_dir: Path | None) -> None:
     print("\nreal KITTI scans (HDL-64E preset; no labels)")
     print(f"{'scan':>40} {'points':>7} {'ground %':>8} {'within 0.2 m':>12} {'plane z0':>8} {'ms':>6}")
     sensor = PRESETS["kitti_hdl64e"]
-    for path in KITTI_SCANS:
-        if not path.is_file():
-            print(f"skip {path} (missing)")
-            continue
+    for path in real_files_or_exit(KITTI_SCANS, SEMANTICKITTI_SCAN):
         pts = np.fromfile(path, np.float32).reshape(-1, 4)
         t0 = time.perf_counter()
         mask = estimate_ground(Scan(pts), sensor)
@@ -112,9 +103,7 @@ def save_bev(pts: np.ndarray, mask: np.ndarray, out: Path) -> None:
 
 
 def tiny_table() -> None:
-    scan_path, label_path = TINY / "velodyne" / "000000.bin", TINY / "labels" / "000000.label"
-    if not (scan_path.is_file() and label_path.is_file()):
-        return
+    scan_path, label_path = real_files_or_exit(SEMANTICKITTI_TINY)
     pts = np.fromfile(scan_path, np.float32).reshape(-1, 4)
     sem = np.fromfile(label_path, np.uint32) & 0xFFFF
     scores = mask_scores(estimate_ground(Scan(pts), PRESETS["kitti_hdl64e"]), ground_truth_mask(sem))
@@ -154,6 +143,7 @@ def main() -> None:
     ap.add_argument("--scenes", type=int, default=4)
     ap.add_argument("--figure-dir", type=Path, default=Path("/tmp"))
     args = ap.parse_args()
+    real_files_or_exit(KITTI_SCANS, SEMANTICKITTI_SCAN, SEMANTICKITTI_TINY)  # one line before any table
     synthetic_table(args.scenes)
     real_table(args.figure_dir)
     tiny_table()

@@ -1,12 +1,15 @@
-"""Shared test fixtures: paths of the project and of the real LiDAR samples."""
+"""Shared test fixtures: paths of the project and of the real LiDAR samples, and the
+synthetic full sweeps that tests needing "some real-sized scan" use instead."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
+import numpy as np
 import pytest
 
-from real_samples import ROOT, require_real
+from real_samples import ALL_SAMPLES, ROOT, require_real
 
 
 @pytest.fixture(scope="session")
@@ -16,8 +19,63 @@ def project_root() -> Path:
 
 @pytest.fixture(scope="session")
 def real_data() -> Path:
-    """The real LiDAR samples (OMNILIDAR_REAL_DATA); skips the test when they are absent."""
-    return require_real()
+    """The real LiDAR samples (OMNILIDAR_REAL_DATA); skips the test unless every sample file is there.
+    Tests that read one or two files say which: require_real(...) or real_file(...)."""
+    return require_real(ALL_SAMPLES)
+
+
+class SyntheticWorld(NamedTuple):
+    settings: dict  # the synthetic section it was rendered with
+    entropy: list
+    scene: object
+    scans: tuple  # two full KITTI HDL-64E sweeps (Scan), 6 m apart on the route
+
+
+def _read_only(scan):
+    """Shared across the session: a test that writes into a sweep fails instead of changing others' input."""
+    for arr in (scan.points, scan.semantic, scan.instance, scan.ring, scan.boxes.boxes):
+        if arr is not None:
+            arr.flags.writeable = False
+    return scan
+
+
+@pytest.fixture(scope="session")
+def synthetic_world() -> SyntheticWorld:
+    """One synthetic intersection scene and two full HDL-64E sweeps along its route,
+    rendered once per test session (per xdist worker)."""
+    from omnilidar.config import section_defaults
+    from omnilidar.data.synthetic.sequence import shard_entropy, simulate_sequence
+
+    settings = section_defaults("synthetic")
+    settings["world"]["layout_weights"] = {"straight": 0, "curve": 0, "intersection": 1, "t_junction": 0}
+    entropy = shard_entropy(7, "test", "world")
+    scene, scans = simulate_sequence(settings, entropy, 0, "kitti_hdl64e", "vehicle", 2, 6.0)
+    return SyntheticWorld(settings, entropy, scene, tuple(_read_only(s) for s in scans))
+
+
+@pytest.fixture(scope="session")
+def synthetic_sweeps(synthetic_world) -> tuple:
+    """Two full synthetic KITTI HDL-64E sweeps (about 127k points each, labels, rings, boxes)."""
+    return synthetic_world.scans
+
+
+@pytest.fixture(scope="session")
+def synthetic_sweep(synthetic_sweeps):
+    """One full synthetic KITTI HDL-64E sweep."""
+    return synthetic_sweeps[0]
+
+
+@pytest.fixture(scope="session")
+def synthetic_nuscenes_sweep(synthetic_world):
+    """A full synthetic nuScenes HDL-32E sweep (intensity 0..255, rings) in the same scene."""
+    from omnilidar.data.synthetic.render import render_scan
+    from omnilidar.data.synthetic.trajectory import route_poses
+    from omnilidar.lidar.sensors import PRESETS
+
+    world, sensor = synthetic_world, PRESETS["nuscenes_hdl32e"]
+    rng = np.random.default_rng(32)
+    pose = route_poses(world.scene, "vehicle", sensor, 1, 1.0, rng)[0]
+    return _read_only(render_scan(world.scene, sensor, pose, rng, world.settings["radiometry"]))
 
 
 @pytest.fixture(autouse=True)

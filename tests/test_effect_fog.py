@@ -1,4 +1,7 @@
-"""Fog effect: core formulas, severity ordering, locality, determinism and edge cases."""
+"""Fog effect: core formulas, severity ordering, locality, determinism and edge cases.
+
+Contract checks run on a synthetic full sweep; the shares of fogged and lost returns
+stated for real KITTI geometry are checked on the real scans."""
 
 from __future__ import annotations
 
@@ -16,19 +19,17 @@ from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Boxes, Scan
 from omnilidar.lidar.sensors import PRESETS
 
-from real_samples import REAL, needs_real, require_real
+from real_samples import real_file
 KITTI = PRESETS["kitti_hdl64e"]
 NUSC = PRESETS["nuscenes_hdl32e"]
 
 
 def _kitti(name: str = "000001") -> np.ndarray:
-    require_real()
-    return np.fromfile(REAL / "kitti_object" / "velodyne" / f"{name}.bin", np.float32).reshape(-1, 4)
+    return np.fromfile(real_file(f"kitti_object/velodyne/{name}.bin"), np.float32).reshape(-1, 4)
 
 
-@pytest.fixture(scope="module")
-def kitti_scan() -> Scan:
-    pts = _kitti()
+def _labelled(pts: np.ndarray) -> Scan:
+    """A sweep's points with simple labels, instances, rings and one box."""
     n = len(pts)
     boxes = Boxes(np.array([[10, 2, -1, 4, 2, 1.5, 0.3]], np.float32), np.array(["Car"]), np.array([7]))
     return Scan(
@@ -38,6 +39,17 @@ def kitti_scan() -> Scan:
         ring=(np.arange(n) % 64).astype(np.int16),
         boxes=boxes,
     )
+
+
+@pytest.fixture(scope="module")
+def kitti_scan(synthetic_sweep) -> Scan:
+    """A full synthetic HDL-64E sweep (its intensities: KITTI's 0..0.99 with exact zeros)."""
+    return _labelled(synthetic_sweep.points)
+
+
+@pytest.fixture(scope="module")
+def real_kitti_scan() -> Scan:
+    return _labelled(_kitti())
 
 
 def _few_points() -> np.ndarray:
@@ -137,12 +149,11 @@ def test_detection_floor_loses_only_weak_returns():
     assert len(out) == 2
 
 
-# ------------------------------------------------------------------ real scans
+# ------------------------------------------------------------------ full sweeps
 
 
-@pytest.mark.parametrize("name", ["000000", "000001"])
-def test_monotone_in_severity_and_alpha(name):
-    scan = Scan(_kitti(name))
+def _affected_counts(scan: Scan) -> dict:
+    """(fogged, fogged or lost) returns per (severity, alpha); checks they grow with both."""
     affected = {}
     for sev, spec in fog.SEVERITIES.items():
         for alpha in fog.ALPHAS[1:]:
@@ -156,6 +167,17 @@ def test_monotone_in_severity_and_alpha(name):
         assert [affected[s, a][1] for s in sevs] == sorted(affected[s, a][1] for s in sevs)
     for s in sevs:
         assert [affected[s, a][1] for a in alphas] == sorted(affected[s, a][1] for a in alphas)
+    return affected
+
+
+def test_monotone_in_severity_and_alpha(kitti_scan):
+    _affected_counts(Scan(kitti_scan.points))
+
+
+@pytest.mark.parametrize("name", ["000000", "000001"])
+def test_fogged_share_on_real_kitti(name):
+    scan = Scan(_kitti(name))
+    affected = _affected_counts(scan)
     assert affected["heavy", 0.06][0] > 0.1 * len(scan) > affected["light", 0.005][0]
 
 
@@ -184,15 +206,25 @@ def test_only_what_fog_reaches(kitti_scan):
     assert out.boxes is kitti_scan.boxes
 
 
-def test_beta_zero_is_attenuation_only(kitti_scan):
-    out, info = _run(kitti_scan, 0.06, 0.0)
+def _check_attenuation_only(scan: Scan) -> tuple[np.ndarray, dict]:
+    out, info = _run(scan, 0.06, 0.0)
     assert not info["weather"].any()
-    assert np.array_equal(out.semantic, kitti_scan.semantic[~info["lost"]])
-    # losses are far, dim returns, and grow with extinction
-    r = np.linalg.norm(kitti_scan.points[:, :3], axis=1)
-    assert 0 < info["lost"].mean() < 0.1 and r[info["lost"]].min() > 20.0
-    _, light = _run(kitti_scan, 0.01, 0.0)
+    assert np.array_equal(out.semantic, scan.semantic[~info["lost"]])
+    # losses grow with extinction
+    _, light = _run(scan, 0.01, 0.0)
     assert light["lost"].sum() < info["lost"].sum() and not (light["lost"] & ~info["lost"]).any()
+    return out, info
+
+
+def test_beta_zero_is_attenuation_only(kitti_scan):
+    _check_attenuation_only(kitti_scan)
+
+
+def test_beta_zero_loses_few_far_returns_of_real_kitti(real_kitti_scan):
+    _, info = _check_attenuation_only(real_kitti_scan)
+    # losses are far, dim returns
+    r = np.linalg.norm(real_kitti_scan.points[:, :3], axis=1)
+    assert 0 < info["lost"].mean() < 0.1 and r[info["lost"]].min() > 20.0
 
 
 def test_zero_alpha_returns_input(kitti_scan):
@@ -222,9 +254,8 @@ def test_does_not_mutate_input(kitti_scan):
     assert np.array_equal(kitti_scan.points, before[0]) and np.array_equal(kitti_scan.semantic, before[1])
 
 
-@needs_real
-def test_nuscenes_scale_stays_in_range():
-    raw = np.fromfile(next((REAL / "nuscenes").glob("*.bin")), np.float32).reshape(-1, 5)[:, :4]
+def test_nuscenes_scale_stays_in_range(synthetic_nuscenes_sweep):
+    raw = synthetic_nuscenes_sweep.points
     scan = Scan(raw, intensity_scale=255.0)
     out, info = _run(scan, 0.06, 0.2, sensor=NUSC)
     assert info["weather"].any()
@@ -348,8 +379,8 @@ def test_npz_cache_roundtrip(tmp_path):
     assert np.load(files[0])["i_fog"].shape == t.i_fog.shape
 
 
-def test_accuracy_time_curve_smoke():
-    scan = Scan(_kitti()[::20])
+def test_accuracy_time_curve_smoke(kitti_scan):
+    scan = Scan(kitti_scan.points[::20])
     rows = fog.accuracy_time_curve(scan, KITTI, "heavy", seeds=[0])
     assert len(rows) == sum(len(v) for v in fog.FIDELITY_LEVELS.values())
     for row in rows:

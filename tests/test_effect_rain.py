@@ -1,4 +1,7 @@
-"""Rain effect (LISA model): Mie optics, drop sampling, contract and edge cases."""
+"""Rain effect (LISA model): Mie optics, drop sampling, contract and edge cases.
+
+The contract runs on a synthetic full sweep; shares of affected returns stated for
+real KITTI scans (and how their zero-remission returns fare) are checked on them."""
 
 from __future__ import annotations
 
@@ -15,14 +18,22 @@ from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Boxes, Scan
 from omnilidar.lidar.sensors import PRESETS
 
-from real_samples import require_real
+from real_samples import real_file
 KITTI = PRESETS["kitti_hdl64e"]
 NUSC = PRESETS["nuscenes_hdl32e"]
 
 
-def _kitti_scan(name: str = "000001") -> Scan:
-    path = require_real() / "kitti_object" / "velodyne" / f"{name}.bin"
-    pts = np.fromfile(path, np.float32).reshape(-1, 4)
+def _real_kitti_scan(name: str = "000001") -> Scan:
+    return _labelled(np.fromfile(real_file(f"kitti_object/velodyne/{name}.bin"), np.float32).reshape(-1, 4))
+
+
+@pytest.fixture(scope="module")
+def sweep(synthetic_sweep) -> Scan:
+    """A full synthetic HDL-64E sweep with simple labels."""
+    return _labelled(synthetic_sweep.points)
+
+
+def _labelled(pts: np.ndarray) -> Scan:
     n = len(pts)
     sem = np.full(n, 40, np.uint16)
     inst = (np.arange(n) % 7).astype(np.uint16)
@@ -98,8 +109,8 @@ def test_extinction_matches_measured(rate, measured):
 # ------------------------------------------------------------------- contract
 
 
-def test_zero_rate_and_empty_scan_return_input():
-    scan = _kitti_scan()
+def test_zero_rate_and_empty_scan_return_input(sweep):
+    scan = sweep
     assert rain.apply(scan, {"rate_mm_h": 0.0}, KITTI, np.random.default_rng(0)) is scan
     out, info = rain.apply(scan, {"rate_mm_h": 0.0}, KITTI, np.random.default_rng(0), return_info=True)
     assert out is scan and not info["lost"].any() and not info["changed"].any() and not info["weather"].any()
@@ -107,8 +118,8 @@ def test_zero_rate_and_empty_scan_return_input():
     assert rain.apply(empty, {"rate_mm_h": 100.0}, KITTI, np.random.default_rng(0)) is empty
 
 
-def test_deterministic_for_a_seed_and_input_untouched():
-    scan = _kitti_scan()
+def test_deterministic_for_a_seed_and_input_untouched(sweep):
+    scan = sweep
     before = scan.points.copy()
     a = rain.apply(scan, {"rate_mm_h": 300.0}, KITTI, np.random.default_rng(7))
     b = rain.apply(scan, {"rate_mm_h": 300.0}, KITTI, np.random.default_rng(7))
@@ -118,8 +129,8 @@ def test_deterministic_for_a_seed_and_input_untouched():
     assert np.array_equal(scan.points, before)
 
 
-def test_labels_rings_boxes_and_info_are_consistent():
-    scan = _kitti_scan()
+def test_labels_rings_boxes_and_info_are_consistent(sweep):
+    scan = sweep
     out, info = rain.apply(scan, {"rate_mm_h": 1500.0}, KITTI, np.random.default_rng(1), return_info=True)
     keep = ~info["lost"]
     assert len(out) == keep.sum() and info["weather"].shape == (len(out),)
@@ -136,8 +147,8 @@ def test_labels_rings_boxes_and_info_are_consistent():
     assert not info["changed"][info["lost"]].any()
 
 
-def test_points_stay_on_their_ray_and_never_beyond_the_target():
-    scan = _kitti_scan()
+def test_points_stay_on_their_ray_and_never_beyond_the_target(sweep):
+    scan = sweep
     out, info = rain.apply(scan, {"rate_mm_h": 2500.0}, KITTI, np.random.default_rng(2), return_info=True)
     src = scan.points[~info["lost"]]
     r_in, r_out = _ranges(src), _ranges(out.points)
@@ -152,8 +163,8 @@ def test_points_stay_on_their_ray_and_never_beyond_the_target():
     assert np.all((rain_i >= 0) & (rain_i <= rain.RHO_WATER + 1e-7))
 
 
-def test_kept_intensity_is_exactly_two_way_attenuated():
-    scan = _kitti_scan()
+def test_kept_intensity_is_exactly_two_way_attenuated(sweep):
+    scan = sweep
     rate = 400.0
     out, info = rain.apply(scan, {"rate_mm_h": rate}, KITTI, np.random.default_rng(3), return_info=True)
     alpha = rain.extinction_coefficient(rate)
@@ -162,8 +173,8 @@ def test_kept_intensity_is_exactly_two_way_attenuated():
     np.testing.assert_allclose(out.points[~info["weather"], 3], expect, rtol=1e-6, atol=1e-7)
 
 
-def test_heavier_rain_affects_more_points():
-    scan = _kitti_scan()
+def _affected_and_shift(scan: Scan) -> list[float]:
+    """Share of lost or rain returns per severity; checks both it and the intensity drop grow."""
     affected, shift = [], []
     for sev in ("light", "moderate", "heavy"):
         out, info = rain.apply(scan, rain.nominal_params(sev), KITTI, np.random.default_rng(4), return_info=True)
@@ -171,25 +182,47 @@ def test_heavier_rain_affects_more_points():
         affected.append(summary["frac_lost"] + summary["frac_rain"])
         shift.append(summary["mean_intensity_shift"])
     assert affected[0] < affected[1] < affected[2]
-    assert 0.01 < affected[0] and affected[2] < 0.4
     assert shift[0] > shift[1] > shift[2]
+    return affected
 
 
-def test_only_what_rain_reaches():
-    scan = _kitti_scan()
-    # Trace rain: (almost) no clean return is lost; LISA loses every
-    # zero-remission point (8.5 % of this scan) at any rate.  The only losses
-    # are returns whose clean power sits within the attenuation of the floor.
+def test_heavier_rain_affects_more_points(sweep):
+    _affected_and_shift(sweep)
+
+
+def test_share_of_real_kitti_rain_affects():
+    affected = _affected_and_shift(_real_kitti_scan())
+    assert 0.01 < affected[0] and affected[2] < 0.4
+
+
+def _trace_rain_losses(scan: Scan) -> np.ndarray:
+    """Trace rain: the only losses are returns whose clean power sits within the
+    attenuation of the floor. Returns the lost mask."""
     rate = 0.01
     out, info = rain.apply(scan, {"rate_mm_h": rate}, KITTI, np.random.default_rng(5), return_info=True)
-    zero = scan.points[:, 3] == 0
-    assert zero.mean() > 0.05 and info["lost"][zero].mean() < 1e-3 and info["lost"].mean() < 1e-4
     r = _ranges(scan.points)
     rho = np.where(scan.points[:, 3] > 0, scan.points[:, 3], rain.ZERO_REMISSION_REFLECTANCE)
     floor = rain.FLOOR_REFLECTANCE / np.maximum(KITTI.max_range, r) ** 2
     margin = rho / r**2 / floor
     atten = np.exp(-2 * rain.extinction_coefficient(rate) * r)
     assert np.all(margin[info["lost"]] * atten[info["lost"]] < 1)
+    return info["lost"]
+
+
+def test_only_what_rain_reaches(sweep):
+    _trace_rain_losses(sweep)
+
+
+def test_trace_rain_keeps_real_kitti_and_its_zero_remission_returns():
+    # Trace rain: (almost) no clean return is lost; LISA loses every
+    # zero-remission point (8.5 % of this scan) at any rate.
+    scan = _real_kitti_scan()
+    lost = _trace_rain_losses(scan)
+    zero = scan.points[:, 3] == 0
+    assert zero.mean() > 0.05 and lost[zero].mean() < 1e-3 and lost.mean() < 1e-4
+
+
+def test_returns_at_the_origin_or_inside_the_minimum_range_get_no_drops():
     # A return at the origin and returns inside the minimum range get no drops.
     pts = np.array([[0, 0, 0, 0.5], [1.0, 0.2, 0, 0.3], [0.5, 0, 0, 0.0]], np.float32)
     tiny = Scan(pts, np.array([40, 40, 40], np.uint16))
@@ -268,7 +301,7 @@ def test_real_zero_remission_rained_like_the_dimmest_reported_returns():
     the dimmest nonzero returns (<= 0.05) at the same range, not all-or-nothing."""
     rain_zero, rain_low, lost = [], [], []
     for name in ("000000", "000001"):
-        scan = _kitti_scan(name)
+        scan = _real_kitti_scan(name)
         r = _ranges(scan.points)
         out, info = rain.apply(scan, {"rate_mm_h": 100.0}, KITTI, np.random.default_rng(6), return_info=True)
         weather = np.zeros(len(scan), bool)

@@ -1,4 +1,7 @@
-"""Wet ground effect: physics, scope (ground only), identity, determinism, edge cases."""
+"""Wet ground effect: physics, scope (ground only), identity, determinism, edge cases.
+
+The contract runs on a synthetic full sweep; that heavy wetness leaves most of the
+real KITTI road is checked on the real scan."""
 
 from __future__ import annotations
 
@@ -17,15 +20,13 @@ from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Boxes, Scan
 from omnilidar.lidar.sensors import PRESETS
 
-from real_samples import require_real
+from real_samples import real_file
 KITTI = PRESETS["kitti_hdl64e"]
 RNG = lambda seed=0: np.random.default_rng(seed)  # noqa: E731
 
 
-@pytest.fixture(scope="module")
-def real():
-    path = require_real() / "kitti_object" / "velodyne" / "000000.bin"
-    pts = np.fromfile(path, np.float32).reshape(-1, 4)
+def _with_ground(pts: np.ndarray) -> tuple[Scan, np.ndarray]:
+    """A sweep's points with random labels, instances and rings, and its estimated ground."""
     n = len(pts)
     rng = RNG(5)
     scan = Scan(
@@ -38,13 +39,22 @@ def real():
     return scan, estimate_ground(scan, KITTI)
 
 
-@pytest.fixture(scope="module")
-def real_runs(real):
-    scan, ground = real
+def _all_runs(scan: Scan, ground: np.ndarray) -> dict:
     return {
         sev: W.apply(scan, W.draw_params(sev, RNG()), KITTI, RNG(), ground=ground, return_info=True)
         for sev in SEVERITY_NAMES
     }
+
+
+@pytest.fixture(scope="module")
+def sweep(synthetic_sweep):
+    """A full synthetic HDL-64E sweep and its estimated ground."""
+    return _with_ground(synthetic_sweep.points)
+
+
+@pytest.fixture(scope="module")
+def runs(sweep):
+    return _all_runs(*sweep)
 
 
 def flat_ground(n_side=40, intensity=0.2, height=1.73, extent=30.0):
@@ -76,8 +86,8 @@ def test_interface():
         W.draw_params("drizzle", RNG())
 
 
-def test_bad_input_raises_input_error(real):
-    scan, ground = real
+def test_bad_input_raises_input_error(sweep):
+    scan, ground = sweep
     with pytest.raises(InputError):
         W.apply(scan, {"water_height_mm": -1.0}, KITTI, RNG(), ground=ground)
     with pytest.raises(InputError):
@@ -158,15 +168,14 @@ def test_pitched_sensor_uses_the_ground_normal():
     np.testing.assert_allclose(out.intensity[ground], expect, rtol=2e-3)
 
 
-def test_monotone_in_severity(real, real_runs):
-    scan, ground = real
-    lost = [real_runs[s][1]["lost"].sum() for s in SEVERITY_NAMES]
+def _check_monotone(scan: Scan, ground: np.ndarray, runs: dict) -> list[int]:
+    """Checks losses grow and intensity drops with severity; returns the losses per severity."""
+    lost = [runs[s][1]["lost"].sum() for s in SEVERITY_NAMES]
     assert lost[0] <= lost[1] < lost[2]
-    assert lost[2] < 0.3 * ground.sum()  # heavy wets, it does not erase the road
     # Mean intensity of surviving ground points drops with water height.
     means = []
     for s in SEVERITY_NAMES:
-        out, info = real_runs[s]
+        out, info = runs[s]
         kept_ground = ground[~info["lost"]]
         means.append(out.intensity[kept_ground].mean())
     assert scan.intensity[ground].mean() > means[0] > means[1]
@@ -174,12 +183,23 @@ def test_monotone_in_severity(real, real_runs):
     lm = W.apply(scan, {"water_height_mm": 0.2, "noise_floor": 0.0}, KITTI, RNG(), ground=ground)
     mm = W.apply(scan, {"water_height_mm": 1.0, "noise_floor": 0.0}, KITTI, RNG(), ground=ground)
     assert np.all(mm.intensity <= lm.intensity)
+    return lost
 
 
-def test_only_ground_changes_order_kept(real, real_runs):
-    scan, ground = real
+def test_monotone_in_severity(sweep, runs):
+    _check_monotone(*sweep, runs)
+
+
+def test_heavy_wet_ground_does_not_erase_the_real_kitti_road():
+    scan, ground = _with_ground(np.fromfile(real_file("kitti_object/velodyne/000000.bin"), np.float32).reshape(-1, 4))
+    lost = _check_monotone(scan, ground, _all_runs(scan, ground))
+    assert lost[2] < 0.3 * ground.sum()  # heavy wets, it does not erase the road
+
+
+def test_only_ground_changes_order_kept(sweep, runs):
+    scan, ground = sweep
     for sev in SEVERITY_NAMES:
-        out, info = real_runs[sev]
+        out, info = runs[sev]
         kept = ~info["lost"]
         assert not info["lost"][~ground].any() and not info["changed"][~ground].any()
         assert len(out) == kept.sum() and not info["weather"].any() and info["weather"].shape == (len(out),)
@@ -197,32 +217,32 @@ def test_only_ground_changes_order_kept(real, real_runs):
         assert out.boxes is scan.boxes
 
 
-def test_zero_remission_points_are_never_lost(real, real_runs):
-    scan, ground = real
+def test_zero_remission_points_are_never_lost(sweep, runs):
+    scan, ground = sweep
     zero = ground & (scan.intensity == 0)
     assert zero.sum() > 100
     for sev in SEVERITY_NAMES:
-        assert not real_runs[sev][1]["lost"][zero].any()
+        assert not runs[sev][1]["lost"][zero].any()
 
 
-def test_scale_free(real, real_runs):
+def test_scale_free(sweep, runs):
     """The same decision whatever the intensity unit or receiver gain."""
-    scan, ground = real
+    scan, ground = sweep
     params = W.draw_params("heavy", RNG())
-    ref = real_runs["heavy"][1]["lost"]
+    ref = runs["heavy"][1]["lost"]
     nusc_like = replace(scan, points=scan.points * np.array([1, 1, 1, 255], np.float32), intensity_scale=255.0)
     sensor255 = replace(KITTI, intensity_scale=255.0)
     out, info = W.apply(nusc_like, params, sensor255, RNG(), ground=ground, return_info=True)
     assert np.array_equal(info["lost"], ref)
-    np.testing.assert_allclose(out.intensity / 255.0, real_runs["heavy"][0].intensity, atol=1e-6)
+    np.testing.assert_allclose(out.intensity / 255.0, runs["heavy"][0].intensity, atol=1e-6)
     assert out.intensity.max() <= 255.0
     dimmer = replace(scan, points=scan.points * np.array([1, 1, 1, 0.5], np.float32))
     _, info = W.apply(dimmer, params, KITTI, RNG(), ground=ground, return_info=True)
     assert np.array_equal(info["lost"], ref)
 
 
-def test_zero_severity_is_identity(real):
-    scan, ground = real
+def test_zero_severity_is_identity(sweep):
+    scan, ground = sweep
     for params in ({"water_height_mm": 0.0, "noise_floor": 0.7}, {"water_height_mm": 0.0}):
         out, info = W.apply(scan, params, KITTI, RNG(), ground=ground, return_info=True)
         assert out is scan
@@ -231,8 +251,8 @@ def test_zero_severity_is_identity(real):
     assert out is scan and np.array_equal(out.points, scan.points)
 
 
-def test_deterministic_and_pure(real):
-    scan, ground = real
+def test_deterministic_and_pure(sweep):
+    scan, ground = sweep
     before = scan.points.copy()
     params = W.draw_params("heavy", RNG())
     for fid in (None, {"fit_points": 1024}):
@@ -301,8 +321,8 @@ def test_property_no_nan_ranges_intensities(n, seed, h, nf, scale, fit_points, r
     assert np.array_equal(out.semantic, scan.semantic[kept])
 
 
-def test_accuracy_time_curve_rows(real):
-    scan, _ = real
+def test_accuracy_time_curve_rows(sweep):
+    scan, _ = sweep
     rows = W.accuracy_time_curve(scan, KITTI, "heavy", seeds=[0], repeats=1)
     assert {r["knob"] for r in rows} == set(W.FIDELITY_LEVELS)
     top = [r for r in rows if r["knob"] == "range_bins" and r["value"] == W.HIGHEST_FIDELITY["range_bins"]][0]

@@ -15,7 +15,7 @@ import yaml
 
 from omnilidar.data.range_image import RangeImageSpec, encode, project
 from omnilidar.errors import InputError
-from omnilidar.io.semantickitti import read_points, write_label, write_points
+from omnilidar.io.semantickitti import write_label, write_points
 from omnilidar.metrics.extractors.pointnet import PointNet
 from omnilidar.metrics.extractors.rangenet import RangeNet, band_average, frd_indices, protocol_image
 from omnilidar.metrics.extractors.sparse_features import BIN_EDGES, distance_bin_means
@@ -30,16 +30,15 @@ from omnilidar.metrics.extractors.weights import (
 )
 from omnilidar.metrics.generation import compare, domain_statistics, set_features
 
-from real_samples import REAL, require_real
 SPEC = RangeImageSpec(32, 256, 3.0, -25.0, 1.45, 80.0)
 
 
 @pytest.fixture(scope="module")
-def real_images() -> np.ndarray:
-    require_real()
+def real_images(synthetic_sweeps) -> np.ndarray:
+    """Range images of two full HDL-64E sweeps (synthetic: the "real" set of the metrics)."""
     out = []
-    for name in ("000000", "000001"):
-        proj = project(read_points(REAL / "kitti_object" / "velodyne" / f"{name}.bin"), SPEC)
+    for scan in synthetic_sweeps:
+        proj = project(scan.points, SPEC)
         out.append(encode(proj.range_img, proj.intensity_img, SPEC))
     return np.stack(out)
 
@@ -233,13 +232,12 @@ def test_self_trained_checkpoint_round_trip_and_tag(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def labelled_entries(tmp_path_factory) -> list[dict]:
-    """Two real KITTI scans with simple labels (road below -1.5 m, building above)."""
-    require_real()
+def labelled_entries(tmp_path_factory, synthetic_sweeps) -> list[dict]:
+    """Two full HDL-64E sweeps with simple labels (road below -1.5 m, building above)."""
     root = tmp_path_factory.mktemp("labelled")
     entries = []
-    for name in ("000000", "000001"):
-        pts = read_points(REAL / "kitti_object" / "velodyne" / f"{name}.bin")
+    for name, scan in zip(("000000", "000001"), synthetic_sweeps):
+        pts = scan.points
         write_points(root / f"{name}.bin", pts)
         write_label(root / f"{name}.label", np.where(pts[:, 2] < -1.5, 40, 50).astype(np.uint32))
         entries.append({"points": str(root / f"{name}.bin"), "labels": str(root / f"{name}.label")})

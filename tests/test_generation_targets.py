@@ -12,11 +12,10 @@ import torch
 from omnilidar.cli import main
 from omnilidar.config import section_defaults
 from omnilidar.data.range_image import encode, project
-from omnilidar.io.semantickitti import read_points, write_points
+from omnilidar.io.semantickitti import write_points
 from omnilidar.metrics.extractors.weights import build_model, save_self_trained
 from omnilidar.report.generation import metric_table, pareto_front, provenance_note
 
-from real_samples import REAL, require_real
 DOMAINS = ["Vehicle", "Beam32"]
 
 # Every result names the datasets it used (omnilidar.data_source).
@@ -34,21 +33,20 @@ def tiny_generator_settings() -> dict:
 
 
 @pytest.fixture(scope="module")
-def fixture_dir(tmp_path_factory) -> Path:
-    """Domains index with real KITTI scans (Beam32 = every other row), a prompt cache,
+def fixture_dir(tmp_path_factory, synthetic_sweeps) -> Path:
+    """Domains index with two full HDL-64E sweeps (Beam32 = every other row), a prompt cache,
     an untrained generator checkpoint, a self-trained-format FRID extractor, a KITTI-360
     style index and an effects_tradeoff.json."""
     from omnilidar.generator.text import CACHE_FORMAT
     from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT
     from omnilidar.generator.unet import build_denoiser, range_image_spec
 
-    require_real()
     root = tmp_path_factory.mktemp("gen_targets")
     g = tiny_generator_settings()
     spec = range_image_spec(g)
     imgs = []
-    for name in ("000000", "000001"):
-        pts = read_points(REAL / "kitti_object" / "velodyne" / f"{name}.bin")
+    for name, scan in zip(("000000", "000001"), synthetic_sweeps):
+        pts = scan.points
         write_points(root / f"{name}.bin", pts)
         proj = project(pts, spec)
         imgs.append(encode(proj.range_img, proj.intensity_img, spec))

@@ -21,7 +21,7 @@ from omnilidar.domains.ground import (
     up_vector,
 )
 
-from real_samples import require_real
+from real_samples import real_file
 PLATFORMS = platform_sensors()
 
 
@@ -151,7 +151,7 @@ def test_mask_scores():
 
 @pytest.mark.parametrize("name", ["kitti_object/velodyne/000000.bin", "kitti_object/velodyne/000001.bin"])
 def test_real_kitti_ground_is_a_plane_near_the_mount_height(name):
-    path = require_real() / name
+    path = real_file(name)
     pts = np.fromfile(path, np.float32).reshape(-1, 4)
     mask = estimate_ground(Scan(pts), PRESETS["kitti_hdl64e"])
     assert 0.3 < mask.mean() < 0.8

@@ -1,4 +1,4 @@
-"""Dataset readers and writers on the real samples, and write/read round trips."""
+"""Dataset readers and writers on the real samples, and write/read round trips (on synthetic sweeps)."""
 
 from __future__ import annotations
 
@@ -8,21 +8,17 @@ import pytest
 from omnilidar.io import kitti360, kitti_object, nuscenes, pi3det, semantickitti
 from omnilidar.lidar.boxes import box_corners, points_in_boxes
 from omnilidar.lidar.scan import Boxes, Scan
+from real_samples import NUSCENES_SWEEP, SEMANTICKITTI_SCAN, SEMANTICKITTI_TINY, real_file, require_real
 
-NUSC_NAME = "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
 KITTI_COUNTS = {"000000": 115_384, "000001": 120_268}
-
-
-def nusc_path(real):
-    return real / "nuscenes" / NUSC_NAME
 
 
 # ------------------------------------------------------------------ KITTI scans
 
 
 @pytest.mark.parametrize("frame", sorted(KITTI_COUNTS))
-def test_kitti_object_scans(real_data, frame):
-    scan = semantickitti.read_scan(real_data / "kitti_object" / "velodyne" / f"{frame}.bin")
+def test_kitti_object_scans(frame):
+    scan = semantickitti.read_scan(real_file(f"kitti_object/velodyne/{frame}.bin"))
     assert len(scan) == KITTI_COUNTS[frame]
     assert scan.points.dtype == np.float32 and scan.intensity_scale == 1.0
     assert scan.intensity.min() == 0.0 and 0.9 < scan.intensity.max() <= 1.0
@@ -34,8 +30,8 @@ def test_kitti_object_scans(real_data, frame):
     assert scan.semantic is None and scan.ring is None
 
 
-def test_semantickitti_sequence_without_labels(real_data):
-    pairs = semantickitti.sequence_paths(real_data / "semantickitti", "00")
+def test_semantickitti_sequence_without_labels():
+    pairs = semantickitti.sequence_paths(require_real(SEMANTICKITTI_SCAN) / "semantickitti", "00")
     assert [(p.name, lab) for p, lab in pairs] == [("000000.bin", None)]
     scan = semantickitti.read_scan(pairs[0][0])
     assert len(scan) == 124_668
@@ -43,8 +39,8 @@ def test_semantickitti_sequence_without_labels(real_data):
     assert 0.07 < np.mean(scan.intensity == 0) < 0.12
 
 
-def test_semantickitti_tiny_label_decoding(real_data):
-    pairs = semantickitti.sequence_paths(real_data / "semantickitti_tiny", 0)  # int accepted
+def test_semantickitti_tiny_label_decoding():
+    pairs = semantickitti.sequence_paths(require_real(SEMANTICKITTI_TINY) / "semantickitti_tiny", 0)  # int accepted
     assert len(pairs) == 1
     bin_path, label_path = pairs[0]
     assert label_path is not None and label_path.name == "000000.label"
@@ -82,10 +78,10 @@ def test_learning_map_round_trip():
 # --------------------------------------------------------------------- nuScenes
 
 
-def test_nuscenes_sample(real_data):
-    raw = nuscenes.read_points(nusc_path(real_data))
+def test_nuscenes_sample():
+    raw = nuscenes.read_points(real_file(NUSCENES_SWEEP))
     assert raw.shape == (34_688, 5)
-    scan = nuscenes.read_scan(nusc_path(real_data))
+    scan = nuscenes.read_scan(real_file(NUSCENES_SWEEP))
     assert len(scan) == 34_688 and scan.intensity_scale == 255.0
     assert scan.intensity.min() >= 0 and scan.intensity.max() == 255.0
     assert scan.ring.dtype == np.int16 and scan.ring.min() == 0 and scan.ring.max() == 31
@@ -97,18 +93,23 @@ def test_nuscenes_sample(real_data):
     assert med[0] > 9 and med[31] < -29  # HDL-32E: +10.67 .. -30.67 deg
 
 
-def test_nuscenes_round_trip(real_data, tmp_path):
-    scan = nuscenes.read_scan(nusc_path(real_data))
+def test_nuscenes_round_trip(tmp_path):
+    scan = nuscenes.read_scan(real_file(NUSCENES_SWEEP))
     out = tmp_path / "sweep.pcd.bin"
     nuscenes.write_scan(scan, out)
-    assert out.read_bytes() == nusc_path(real_data).read_bytes()  # bit-exact
+    assert out.read_bytes() == real_file(NUSCENES_SWEEP).read_bytes()  # bit-exact
+
+
+def test_nuscenes_lidarseg_round_trip(synthetic_nuscenes_sweep, tmp_path):
+    scan = synthetic_nuscenes_sweep
     labels = (np.arange(len(scan)) % 32).astype(np.uint8)
     nuscenes.write_lidarseg(tmp_path / "seg.bin", labels)
     np.testing.assert_array_equal(nuscenes.read_lidarseg(tmp_path / "seg.bin", len(scan)), labels)
 
 
-def test_intensity_scale_conversion(real_data, tmp_path):
-    scan = nuscenes.read_scan(nusc_path(real_data))
+def test_intensity_scale_conversion(synthetic_nuscenes_sweep, tmp_path):
+    scan = synthetic_nuscenes_sweep
+    assert scan.intensity_scale == 255.0 and scan.intensity.max() > 1.0
     semantickitti.write_scan(scan, tmp_path / "k.bin")
     kitti = semantickitti.read_scan(tmp_path / "k.bin")
     np.testing.assert_allclose(kitti.intensity, scan.intensity / 255.0, atol=1e-6)
@@ -123,8 +124,9 @@ def test_intensity_scale_conversion(real_data, tmp_path):
 
 
 @pytest.mark.parametrize("frame", sorted(KITTI_COUNTS))
-def test_kitti_boxes_contain_points(real_data, frame):
-    root = real_data / "kitti_object"
+def test_kitti_boxes_contain_points(frame):
+    root = require_real(f"kitti_object/{sub}/{frame}.{ext}" for sub, ext in
+                        (("velodyne", "bin"), ("label_2", "txt"), ("calib", "txt"))) / "kitti_object"
     objects = kitti_object.read_objects(root / "label_2" / f"{frame}.txt")
     calib = kitti_object.read_calib(root / "calib" / f"{frame}.txt")
     assert calib["P2"].shape == (3, 4) and calib["R0_rect"].shape == (3, 3)
@@ -154,8 +156,8 @@ def test_kitti_boxes_contain_points(real_data, frame):
     assert set(cars.names.tolist()) <= {"Car"}
 
 
-def test_kitti_label_and_calib_round_trip(real_data, tmp_path):
-    root = real_data / "kitti_object"
+def test_kitti_label_and_calib_round_trip(tmp_path):
+    root = require_real("kitti_object/label_2/000001.txt", "kitti_object/calib/000001.txt") / "kitti_object"
     objects = kitti_object.read_objects(root / "label_2" / "000001.txt")
     calib = kitti_object.read_calib(root / "calib" / "000001.txt")
     kitti_object.write_objects(tmp_path / "l.txt", objects)
@@ -218,9 +220,9 @@ def test_points_in_boxes_matches_corners():
 # ----------------------------------------------------------------- round trips
 
 
-def test_semantickitti_round_trip(real_data, tmp_path):
-    src = real_data / "semantickitti_tiny" / "sequences" / "00"
-    scan = semantickitti.read_scan(src / "velodyne" / "000000.bin", src / "labels" / "000000.label")
+def test_semantickitti_round_trip(synthetic_sweep, tmp_path):
+    scan = synthetic_sweep.select(np.linspace(0, len(synthetic_sweep) - 1, 50).astype(int))  # 50 labelled points
+    assert scan.semantic.any()
     scan = Scan(scan.points, scan.semantic, np.arange(50, dtype=np.uint16) * 1000)
     root = tmp_path / "sk"
     seq = root / "sequences" / "08"
@@ -241,12 +243,12 @@ def test_semantickitti_round_trip(real_data, tmp_path):
     assert not inst.any()
 
 
-def test_kitti360_paths_and_round_trip(real_data, tmp_path):
+def test_kitti360_paths_and_round_trip(synthetic_sweep, tmp_path):
     path = kitti360.scan_path(tmp_path, 3, 42)
     assert path.relative_to(tmp_path).as_posix() == (
         "data_3d_raw/2013_05_28_drive_0003_sync/velodyne_points/data/0000000042.bin"
     )
-    scan = semantickitti.read_scan(real_data / "kitti_object" / "velodyne" / "000000.bin")
+    scan = Scan(synthetic_sweep.points)
     kitti360.write_scan(scan, kitti360.scan_path(tmp_path, 3, 42))
     kitti360.write_scan(scan.select(np.arange(100)), kitti360.scan_path(tmp_path, 3, 7))
     paths = kitti360.sequence_paths(tmp_path, 3)
@@ -256,9 +258,9 @@ def test_kitti360_paths_and_round_trip(real_data, tmp_path):
     assert kitti360.SPLITS == {"train": [3, 4, 5, 6, 7, 9, 10], "test": [0, 2]}
 
 
-def test_pi3det_round_trip(real_data, tmp_path):
+def test_pi3det_round_trip(synthetic_sweep, tmp_path):
     root = tmp_path / "pi3det"
-    scan = semantickitti.read_scan(real_data / "kitti_object" / "velodyne" / "000000.bin")
+    scan = Scan(synthetic_sweep.points)
     semantickitti.write_scan(scan, root / "drone" / "000000.bin")
     boxes = Boxes(np.array([[5, 1, -1, 4, 2, 1.5, 0.3], [8, -2, -1, 0.6, 0.6, 1.7, 0]]),
                   ["Vehicle", "Pedestrian"])

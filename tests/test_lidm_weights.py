@@ -28,7 +28,6 @@ from omnilidar.metrics.extractors.weights import build_model, file_sha, load_ext
 from omnilidar.sparse.conv import SparseConv3d, SparseInverseConv3d, SubMConv3d
 from omnilidar.sparse.tensor import SparseTensor
 
-from real_samples import require_real
 SPVNAS_CS = [32, 32, 64, 128, 256, 256, 128, 96, 96]
 
 
@@ -263,7 +262,7 @@ class _Evil:
         return (_side_effect, ("executed",))
 
 
-def test_lidm_checkpoint_file_loads_directly_with_official_tag(tmp_path, spvcnn_state):
+def test_lidm_checkpoint_file_loads_directly_with_official_tag(tmp_path, spvcnn_state, synthetic_sweep):
     path = tmp_path / "model.ckpt"
     torch.save({"state_dict": {f"module.{k}": v for k, v in spvcnn_state.items()}, "epoch": 63,
                 "hyper_parameters": _HParams(cr=0.5), "callbacks": {"x": _Evil()}}, path)
@@ -271,9 +270,7 @@ def test_lidm_checkpoint_file_loads_directly_with_official_tag(tmp_path, spvcnn_
     assert not CALLS  # nothing in the file ran
     assert loaded.weights == f"official:{file_sha(path)}"
     assert loaded.arch["width"] == "W16" and loaded.comparable_with_paper
-    from omnilidar.io.semantickitti import read_points
-
-    pts = read_points(require_real() / "kitti_object" / "velodyne" / "000000.bin")[::200]
+    pts = synthetic_sweep.points[::200]
     feats = loaded.extract({"points": [pts]})
     assert feats.shape == (1, 16 * 48) and np.isfinite(feats).all() and np.abs(feats).sum() > 0
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import random
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,18 +30,11 @@ from omnilidar.metrics.bev import (
     protocol_subset,
 )
 
-from real_samples import REAL, require_real
-KITTI_SCANS = [REAL / "kitti_object" / "velodyne" / f"00000{i}.bin" for i in (0, 1)]
-
-
-def _read_bin(path: Path) -> np.ndarray:
-    return np.fromfile(path, dtype=np.float32).reshape(-1, 4)
-
 
 @pytest.fixture(scope="module")
-def kitti_scans() -> list[np.ndarray]:
-    require_real()
-    return [_read_bin(p) for p in KITTI_SCANS]
+def kitti_scans(synthetic_sweeps) -> list[np.ndarray]:
+    """The points of two full HDL-64E sweeps (synthetic, KITTI's sensor)."""
+    return [np.array(s.points) for s in synthetic_sweeps]
 
 
 def _random_points(rng, n, extent=90.0):
@@ -99,7 +91,7 @@ def test_histogram_accepts_scans_and_names_bad_input(kitti_scans):
     assert bev_histograms([]).shape == (0, 100, 100)
 
 
-def test_real_scan_histogram_counts_the_band(kitti_scans):
+def test_full_sweep_histogram_counts_the_band(kitti_scans):
     for pts in kitti_scans:
         r = np.linalg.norm(pts[:, :3].astype(np.float64), axis=1)
         hist = bev_histogram(pts)
@@ -327,7 +319,7 @@ def test_lidm_mmd_identical_zero_and_empty_policy():
 
 
 @pytest.mark.parametrize("variant", ["r2flow", "lidm"])
-def test_bev_scores_on_real_scans(kitti_scans, variant):
+def test_bev_scores_on_full_sweeps(kitti_scans, variant):
     scans = [Scan(p) for p in kitti_scans]
     same = bev_scores(scans, scans, variant=variant)
     assert same.variant == variant and same.jsd == 0.0 and 0.0 <= same.mmd < 1e-15

@@ -20,14 +20,8 @@ from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Scan
 from omnilidar.lidar.sensors import PRESETS
 
-from real_samples import REAL, require_real
-KITTI = REAL / "kitti_object" / "velodyne" / "000001.bin"
+from real_samples import real_file
 SPEC = RangeImageSpec.from_sensor(PRESETS["kitti_hdl64e"])
-
-
-def _kitti():
-    require_real()
-    return np.fromfile(KITTI, np.float32).reshape(-1, 4)
 
 
 def test_spec_from_sensor_and_validation():
@@ -68,11 +62,9 @@ def test_nearest_wins_and_ties_go_to_lower_index():
     assert proj.mask.sum() == 1 and (proj.range_img[~proj.mask] == 0).all()
 
 
-def test_real_scan_round_trip():
-    pts = _kitti()
+def _check_round_trip(pts: np.ndarray):
+    """Project, encode and decode a sweep: the pixels keep their nearest point's range."""
     proj = project(pts, SPEC)
-    assert proj.valid.mean() > 0.99
-    assert 0.6 < proj.mask.mean() < 0.9
     won = proj.point_index_img[proj.mask]
     np.testing.assert_allclose(proj.range_img[proj.mask], np.linalg.norm(pts[won, :3].astype(np.float64), axis=1), rtol=1e-6)
     img = encode(proj.range_img, proj.intensity_img, SPEC)
@@ -83,6 +75,18 @@ def test_real_scan_round_trip():
     assert np.array_equal(m, proj.mask)
     np.testing.assert_allclose(d[m], proj.range_img[m], rtol=1e-5)
     np.testing.assert_allclose(i[m], proj.intensity_img[m], atol=1e-6)
+    return proj
+
+
+def test_full_sweep_round_trip(synthetic_sweep):
+    _check_round_trip(synthetic_sweep.points)
+
+
+def test_real_scan_round_trip_fills_the_image():
+    # The spec fits the real sensor: nearly every return lands in the image, which it mostly fills.
+    proj = _check_round_trip(np.fromfile(real_file("kitti_object/velodyne/000001.bin"), np.float32).reshape(-1, 4))
+    assert proj.valid.mean() > 0.99
+    assert 0.6 < proj.mask.mean() < 0.9
 
 
 def test_encoding_formula_and_min_range_threshold():
@@ -121,8 +125,8 @@ def test_unproject_row_major_and_pixel_centres():
     assert proj.point_row.tolist() == [0, 2, 3] and proj.point_col.tolist() == [7, 5, 0]
 
 
-def test_scan_level_helpers():
-    scan = Scan(points=_kitti())
+def test_scan_level_helpers(synthetic_sweep):
+    scan = Scan(points=synthetic_sweep.points)
     img = to_range_image(scan, SPEC)
     back = from_range_image(img, SPEC, intensity_scale=1.0, ring_from_row=True)
     assert len(back) == int((img[0] > -1).sum())

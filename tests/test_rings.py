@@ -1,4 +1,5 @@
-"""Ring recovery and beam reduction."""
+"""Ring recovery and beam reduction: on real KITTI and nuScenes scans (their firing order and
+ring channel are the truth), order independence on a synthetic sweep."""
 
 import numpy as np
 import pytest
@@ -7,15 +8,12 @@ from omnilidar.data.rings import beam_reduce, recover_rings
 from omnilidar.lidar.scan import Scan
 from omnilidar.lidar.sensors import PRESETS
 
-from real_samples import REAL, needs_real, require_real
-KITTI = REAL / "kitti_object" / "velodyne" / "000000.bin"
-NUSC = REAL / "nuscenes" / "n015-2018-07-24-11-22-45+0800__LIDAR_TOP__1532402927647951.pcd.bin"
+from real_samples import NUSCENES_SWEEP, needs_real, real_file
 HDL64 = PRESETS["kitti_hdl64e"]
 
 
-def _kitti():
-    require_real()
-    return np.fromfile(KITTI, np.float32).reshape(-1, 4)
+def _kitti(name: str = "000000"):
+    return np.fromfile(real_file(f"kitti_object/velodyne/{name}.bin"), np.float32).reshape(-1, 4)
 
 
 def _firing_order_rings(points):
@@ -40,8 +38,9 @@ def test_kitti_matches_firing_order(kitti_rings):
     assert (recover_rings(pts, HDL64, calibrate=False) == ref).mean() < 0.5
 
 
-def test_order_independent(kitti_rings):
-    pts, _, rings = kitti_rings
+def test_order_independent(synthetic_sweep):
+    pts = synthetic_sweep.points
+    rings = recover_rings(pts, HDL64)
     perm = np.random.default_rng(0).permutation(len(pts))
     assert np.array_equal(recover_rings(pts[perm], HDL64), rings[perm])
 
@@ -73,9 +72,9 @@ def test_non_finite_get_minus_one_and_small_scans_fall_back():
     assert recover_rings(np.zeros((0, 4), np.float32), HDL64).shape == (0,)
 
 
-@needs_real
+@needs_real(NUSCENES_SWEEP)
 def test_nuscenes_rings_agree_where_geometry_is_defined():
-    raw = np.fromfile(NUSC, np.float32).reshape(-1, 5)
+    raw = np.fromfile(real_file(NUSCENES_SWEEP), np.float32).reshape(-1, 5)
     sensor = PRESETS["nuscenes_hdl32e"]
     truth = 31 - raw[:, 4].astype(np.int64)  # nuScenes numbers rings bottom-up
     rings = recover_rings(raw[:, :4], sensor)
@@ -113,7 +112,7 @@ def test_a_units_calibration_recovers_rings_of_cropped_and_thinned_scans(kitti_r
     pts, ref, _ = kitti_rings
     calibration = calibrate_rings(pts, HDL64)
     assert calibration is not None and calibration.intercept.shape == (64,)
-    other = np.fromfile(REAL / "kitti_object" / "velodyne" / "000001.bin", np.float32).reshape(-1, 4)
+    other = _kitti("000001")
     other_ref = _firing_order_rings(other)
     az = np.degrees(np.arctan2(other[:, 1], other[:, 0]))
     for keep in (np.abs(az) < 45, other_ref % 2 == 0, az > 0):

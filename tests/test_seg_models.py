@@ -1,4 +1,4 @@
-"""Voxelisation, MinkUNet and SPVCNN on a real (cropped) KITTI scan."""
+"""Voxelisation, MinkUNet and SPVCNN on a (cropped) full HDL-64E sweep."""
 
 from __future__ import annotations
 
@@ -11,11 +11,7 @@ from omnilidar.downstream.seg.minkunet import MinkUNet, minkunet
 from omnilidar.downstream.seg.spvcnn import SPVCNN, devoxelize, spvcnn, trilinear_weights
 from omnilidar.downstream.seg.voxelize import IGNORE_INDEX, collate, voxel_labels, voxelize
 from omnilidar.errors import InputError
-from omnilidar.io.semantickitti import read_points
 from omnilidar.sparse.tensor import SparseTensor
-
-from real_samples import REAL, require_real
-SCAN = REAL / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin"
 
 
 @pytest.fixture(autouse=True)
@@ -28,10 +24,10 @@ def one_thread():
 
 
 @pytest.fixture(scope="module")
-def crop():
-    require_real()
-    pts = read_points(SCAN)
-    keep = (np.abs(pts[:, 0]) < 6) & (np.abs(pts[:, 1]) < 6)
+def crop(synthetic_sweep):
+    """The sweep's points within 5 m of the sensor along x and y (about 35k, like KITTI's within 6 m)."""
+    pts = synthetic_sweep.points
+    keep = (np.abs(pts[:, 0]) < 5) & (np.abs(pts[:, 1]) < 5)
     return pts[keep]
 
 

@@ -14,19 +14,16 @@ from omnilidar.data.synthetic.statistics import scan_statistics
 from omnilidar.data.synthetic.trajectory import route_poses
 from omnilidar.io.semantickitti import LEARNING_MAP, read_points
 from omnilidar.lidar.sensors import PRESETS
-from real_samples import needs_real, require_real
+from real_samples import KITTI_SCANS, needs_real, require_real
 
 SETTINGS = section_defaults("synthetic")
 
 
 @pytest.fixture(scope="module")
-def world():
-    """One scene (intersection layout forced) and two KITTI scans 6 m apart."""
-    settings = section_defaults("synthetic")
-    settings["world"]["layout_weights"] = {"straight": 0, "curve": 0, "intersection": 1, "t_junction": 0}
-    entropy = shard_entropy(7, "test", "world")
-    scene, scans = simulate_sequence(settings, entropy, 0, "kitti_hdl64e", "vehicle", 2, 6.0)
-    return settings, entropy, scene, list(scans)
+def world(synthetic_world):
+    """One scene (intersection layout forced) and two KITTI scans 6 m apart: conftest's
+    synthetic world, which other tests use as their full sweeps."""
+    return synthetic_world
 
 
 def test_same_seed_is_bit_identical_and_other_seed_differs(world):
@@ -126,10 +123,10 @@ def test_ring_major_order_matches_kitti_files(world):
     assert (np.diff(az) > -0.05).mean() > 0.99  # counter-clockwise from straight ahead
 
 
-@needs_real
+@needs_real(KITTI_SCANS)
 def test_kitti_sweeps_hold_about_as_many_points_as_real_kitti(world):
     _, _, _, scans = world
-    real = [read_points(p) for p in sorted((require_real() / "kitti_object" / "velodyne").glob("*.bin"))]
+    real = [read_points(require_real() / name) for name in KITTI_SCANS]
     assert real
     ratio = np.mean([len(s.points) for s in scans]) / np.mean([len(p) for p in real])
     assert 0.7 < ratio < 1.3, "synthetic HDL-64 scans should hold about as many points as KITTI's"
