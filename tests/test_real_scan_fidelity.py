@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from real_samples import REAL, needs_real
+from real_samples import KITTI_SCANS, REAL, SEMANTICKITTI_SCAN, needs_real
 
 from omnilidar.data.rings import RingRecoveryWarning, calibrate_rings, firing_order_rings, ring_recovery
 from omnilidar.lidar.scan import Scan
@@ -21,7 +21,7 @@ from omnilidar.domains.effects import wet_ground as W
 from omnilidar.domains.spec import EffectSpec, SceneSpec
 from omnilidar.errors import InputError
 
-pytestmark = needs_real
+pytestmark = needs_real(SEMANTICKITTI_SCAN, KITTI_SCANS)
 SEMKITTI = REAL / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin"
 KITTI = [REAL / "kitti_object" / "velodyne" / f"00000{i}.bin" for i in (0, 1)]
 HDL64 = PRESETS["kitti_hdl64e"]
