@@ -10,6 +10,7 @@ configfile: "config/config.yaml"
 
 include: "rules/common.smk"
 include: "rules/resources.smk"
+include: "rules/report.smk"
 include: "rules/data.smk"
 include: "rules/domains.smk"
 include: "rules/generator.smk"
@@ -38,3 +39,6 @@ rule all:
     input:
         "results/semkitti_1pct.json",
         "results/data_summary.json",
+        report_files(),  # what `snakemake --report report.html` gathers: rules/report.smk
+    params:
+        captions=report_captions(),

@@ -60,6 +60,16 @@ def code(command, exclude=()):
     return digest
 
 
+def result_code(command):
+    """Code hash of a result rule: its command and the HTML table written after it."""
+    return f"{code(command)} {code('result-table')}"
+
+
+def with_table(command):
+    """A result rule's command, then its result as an HTML table (for the report)."""
+    return f"{command} && omnilidar result-table {{output.json}} --out {{output.table}} >> {{log}} 2>&1"
+
+
 def _report_version_changes():
     """Say which package versions differ from the last successful run of this workflow."""
     try:

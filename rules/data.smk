@@ -72,11 +72,12 @@ rule data_summary:
         expand(f"{DATA}/index/{{dataset}}.json", dataset=["semantickitti", "kitti360", "pi3det", "nuscenes"]),
     output:
         json="results/data_summary.json",
-        figure=report("results/figures/data_summary.png", caption="../workflow/report/data_summary.rst", category="Data"),
+        table="results/tables/data_summary.html",
+        figure="results/figures/data_summary.png",
     params:
         settings=settings("data_summary"),
         seed=config["seed"],
-        code=code("summarize-data"),
+        code=result_code("summarize-data"),
     log:
         "logs/data_summary.log",
     benchmark:
@@ -86,5 +87,7 @@ rule data_summary:
     resources:
         **job_resources("data_summary"),
     shell:
-        "omnilidar summarize-data {input} --settings {params.settings:q} --seed {params.seed} "
-        "--out {output.json} --figure {output.figure} > {log} 2>&1"
+        with_table(
+            "omnilidar summarize-data {input} --settings {params.settings:q} --seed {params.seed} "
+            "--out {output.json} --figure {output.figure} > {log} 2>&1"
+        )

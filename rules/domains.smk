@@ -107,11 +107,12 @@ rule domain_fidelity:
         index=FIDELITY_INDEX,
     output:
         json="results/domain_fidelity.json",
-        figure=report("results/figures/domain_fidelity.png", caption="../workflow/report/domain_fidelity.rst", category="Domains"),
+        table="results/tables/domain_fidelity.html",
+        figure="results/figures/domain_fidelity.png",
     params:
         settings=settings("domains"),
         seed=config["seed"],
-        code=code("domain-fidelity"),
+        code=result_code("domain-fidelity"),
         index=lambda w, input: f"--index {input.index}" if input.index else "",
     log:
         "logs/domain_fidelity.log",
@@ -122,8 +123,10 @@ rule domain_fidelity:
     resources:
         **job_resources("domain_fidelity"),
     shell:
-        "omnilidar domain-fidelity --settings {params.settings:q} --seed {params.seed} "
-        "--out {output.json} --figure {output.figure} {params.index} {input.scans} > {log} 2>&1"
+        with_table(
+            "omnilidar domain-fidelity --settings {params.settings:q} --seed {params.seed} "
+            "--out {output.json} --figure {output.figure} {params.index} {input.scans} > {log} 2>&1"
+        )
 
 
 rule effects_tradeoff:
@@ -133,11 +136,12 @@ rule effects_tradeoff:
         index=TRADEOFF_INDEX,
     output:
         json="results/effects_tradeoff.json",
-        figure=report("results/figures/effects_tradeoff.png", caption="../workflow/report/effects_tradeoff.rst", category="Domains"),
+        table="results/tables/effects_tradeoff.html",
+        figure="results/figures/effects_tradeoff.png",
     params:
         settings=settings("domains"),
         seed=config["seed"],
-        code=code("effects-tradeoff"),
+        code=result_code("effects-tradeoff"),
         index=lambda w, input: f"--index {input.index}" if input.index else "",
     log:
         "logs/effects_tradeoff.log",
@@ -148,8 +152,10 @@ rule effects_tradeoff:
     resources:
         **job_resources("effects_tradeoff"),
     shell:
-        "omnilidar effects-tradeoff --settings {params.settings:q} --seed {params.seed} "
-        "--out {output.json} --figure {output.figure} {params.index} {input.scans} > {log} 2>&1"
+        with_table(
+            "omnilidar effects-tradeoff --settings {params.settings:q} --seed {params.seed} "
+            "--out {output.json} --figure {output.figure} {params.index} {input.scans} > {log} 2>&1"
+        )
 
 
 rule domains:

@@ -241,7 +241,8 @@ rule semkitti_result:
         pseudo=generated_pseudo_labels([EXPERIMENTS["semkitti"]["domain"]]),
     output:
         json="results/semkitti_{pct}pct.json",
-        figure=report("results/figures/semkitti_{pct}pct.png", caption="../workflow/report/segmentation.rst", category="Segmentation"),
+        table="results/tables/semkitti_{pct}pct.html",
+        figure="results/figures/semkitti_{pct}pct.png",
     wildcard_constraints:
         pct=r"\d+",
     params:
@@ -250,7 +251,7 @@ rule semkitti_result:
         settings=settings("downstream"),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
-        code=code("gda-result"),
+        code=result_code("gda-result"),
     log:
         "logs/downstream/semkitti_{pct}pct.log",
     benchmark:
@@ -260,7 +261,7 @@ rule semkitti_result:
     resources:
         **job_resources("gda_result"),
     shell:
-        GDA_RESULT
+        with_table(GDA_RESULT)
 
 
 rule semkittic_result:
@@ -271,14 +272,15 @@ rule semkittic_result:
         pseudo=generated_pseudo_labels(EXPERIMENTS["semkittic"]["domains"]),
     output:
         json="results/semkittic.json",
-        figure=report("results/figures/semkittic.png", caption="../workflow/report/segmentation.rst", category="Segmentation"),
+        table="results/tables/semkittic.html",
+        figure="results/figures/semkittic.png",
     params:
         experiment="semkittic",
         kind="semkittic",
         settings=settings("downstream"),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
-        code=code("gda-result"),
+        code=result_code("gda-result"),
     log:
         "logs/downstream/semkittic.log",
     benchmark:
@@ -288,7 +290,7 @@ rule semkittic_result:
     resources:
         **job_resources("gda_result"),
     shell:
-        GDA_RESULT
+        with_table(GDA_RESULT)
 
 
 rule nusc_beam32_result:
@@ -299,7 +301,8 @@ rule nusc_beam32_result:
         pseudo=generated_pseudo_labels([EXPERIMENTS["nusc_beam32"]["domain"]]),
     output:
         json="results/nusc_beam32_{pct}pct.json",
-        figure=report("results/figures/nusc_beam32_{pct}pct.png", caption="../workflow/report/segmentation.rst", category="Segmentation"),
+        table="results/tables/nusc_beam32_{pct}pct.html",
+        figure="results/figures/nusc_beam32_{pct}pct.png",
     wildcard_constraints:
         pct=r"\d+",
     params:
@@ -308,7 +311,7 @@ rule nusc_beam32_result:
         settings=settings("downstream"),
         seed=config["seed"],
         data_source=data_source("nuscenes"),
-        code=code("gda-result"),
+        code=result_code("gda-result"),
     log:
         "logs/downstream/nusc_beam32_{pct}pct.log",
     benchmark:
@@ -318,7 +321,7 @@ rule nusc_beam32_result:
     resources:
         **job_resources("gda_result"),
     shell:
-        GDA_RESULT
+        with_table(GDA_RESULT)
 
 
 rule semanticstf_result:
@@ -330,7 +333,8 @@ rule semanticstf_result:
         pseudo=generated_pseudo_labels(EXPERIMENTS["semanticstf"]["domains"]),
     output:
         json="results/semanticstf.json",
-        figure=report("results/figures/semanticstf.png", caption="../workflow/report/segmentation.rst", category="Segmentation"),
+        table="results/tables/semanticstf.html",
+        figure="results/figures/semanticstf.png",
     params:
         experiment="semanticstf",
         kind="semanticstf",
@@ -338,7 +342,7 @@ rule semanticstf_result:
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         standin="" if EXPERIMENTS["semanticstf"]["subsets"] else "--standin",
-        code=code("gda-result"),
+        code=result_code("gda-result"),
     log:
         "logs/downstream/semanticstf.log",
     benchmark:
@@ -348,7 +352,7 @@ rule semanticstf_result:
     resources:
         **job_resources("gda_result"),
     shell:
-        GDA_RESULT_STANDIN
+        with_table(GDA_RESULT_STANDIN)
 
 
 rule gda_curve:
@@ -361,12 +365,13 @@ rule gda_curve:
         pseudo=curve_pseudo_labels(GDA_CURVE["domain"], max(curve_counts())),
     output:
         json="results/gda_curve.json",
-        figure=report("results/figures/gda_curve.png", caption="../workflow/report/gda_curve.rst", category="Accuracy vs time"),
+        table="results/tables/gda_curve.html",
+        figure="results/figures/gda_curve.png",
     params:
         settings=settings("downstream"),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
-        code=code("gda-curve"),
+        code=result_code("gda-curve"),
     log:
         "logs/downstream/gda_curve.log",
     benchmark:
@@ -376,10 +381,12 @@ rule gda_curve:
     resources:
         **job_resources("gda_curve"),
     shell:
-        "omnilidar gda-curve --evaluations {input.evaluations} --samples {input.samples} "
-        "--pseudo-labels {input.pseudo} "
-        "--settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
-        "--out {output.json} --figure {output.figure} > {log} 2>&1"
+        with_table(
+            "omnilidar gda-curve --evaluations {input.evaluations} --samples {input.samples} "
+            "--pseudo-labels {input.pseudo} "
+            "--settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
+            "--out {output.json} --figure {output.figure} > {log} 2>&1"
+        )
 
 
 rule segmentation:

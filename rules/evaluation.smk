@@ -125,8 +125,9 @@ rule generation_quality:
         samples=[d for dirs in GQ_SETS.values() for d in dirs],
     output:
         json="results/generation_quality.json",
-        markdown=report("results/generation_quality.md", caption="../workflow/report/generation_quality.rst", category="Generation"),
-        figure=report("results/figures/generation_quality.png", caption="../workflow/report/generation_quality.rst", category="Generation"),
+        table="results/tables/generation_quality.html",
+        markdown="results/generation_quality.md",
+        figure="results/figures/generation_quality.png",
     params:
         settings=eval_settings("generation_quality"),
         seed=config["seed"],
@@ -134,7 +135,7 @@ rule generation_quality:
         weights=weights_args(GQ_WEIGHTS),
         samples=sets_args(GQ_SETS),
         data_source=data_source(),
-        code=code("generation-quality"),
+        code=result_code("generation-quality"),
     log:
         "logs/evaluation/generation_quality.log",
     benchmark:
@@ -144,9 +145,11 @@ rule generation_quality:
     resources:
         **job_resources("generation_quality"),
     shell:
-        "omnilidar generation-quality --domains {input.domains} --prompts {input.prompts} --full {input.full} "
-        "{params.baselines} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
-        "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
+        with_table(
+            "omnilidar generation-quality --domains {input.domains} --prompts {input.prompts} --full {input.full} "
+            "{params.baselines} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
+            "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
+        )
 
 
 rule ablation_table:
@@ -159,8 +162,9 @@ rule ablation_table:
         samples=[d for dirs in ABL_SETS.values() for d in dirs],
     output:
         json="results/ablation.json",
-        markdown=report("results/ablation.md", caption="../workflow/report/ablation.rst", category="Generation"),
-        figure=report("results/figures/ablation.png", caption="../workflow/report/ablation.rst", category="Generation"),
+        table="results/tables/ablation.html",
+        markdown="results/ablation.md",
+        figure="results/figures/ablation.png",
     params:
         settings=eval_settings("ablation"),
         seed=config["seed"],
@@ -168,7 +172,7 @@ rule ablation_table:
         weights=weights_args(ABL_WEIGHTS),
         samples=sets_args(ABL_SETS),
         data_source=data_source(),
-        code=code("ablation-table"),
+        code=result_code("ablation-table"),
     log:
         "logs/evaluation/ablation.log",
     benchmark:
@@ -178,9 +182,11 @@ rule ablation_table:
     resources:
         **job_resources("ablation_table"),
     shell:
-        "omnilidar ablation-table --domains {input.domains} --prompts {input.prompts} {params.checkpoints} "
-        "{params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
-        "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
+        with_table(
+            "omnilidar ablation-table --domains {input.domains} --prompts {input.prompts} {params.checkpoints} "
+            "{params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
+            "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
+        )
 
 
 rule kitti360_generation:
@@ -194,15 +200,16 @@ rule kitti360_generation:
         samples=[d for dirs in K360_SETS.values() for d in dirs],
     output:
         json="results/kitti360_generation.json",
-        markdown=report("results/kitti360_generation.md", caption="../workflow/report/kitti360_generation.rst", category="Generation"),
-        figure=report("results/figures/kitti360_generation.png", caption="../workflow/report/kitti360_generation.rst", category="Generation"),
+        table="results/tables/kitti360_generation.html",
+        markdown="results/kitti360_generation.md",
+        figure="results/figures/kitti360_generation.png",
     params:
         settings=eval_settings("kitti360"),
         seed=config["seed"],
         weights=weights_args(K360_WEIGHTS),
         samples=sets_args(K360_SETS),
         data_source=data_source("kitti360"),
-        code=code("kitti360-generation"),
+        code=result_code("kitti360-generation"),
     log:
         "logs/evaluation/kitti360_generation.log",
     benchmark:
@@ -212,9 +219,11 @@ rule kitti360_generation:
     resources:
         **job_resources("kitti360_generation"),
     shell:
-        "omnilidar kitti360-generation --index {input.index} --prompts {input.prompts} --full {input.full} "
-        "--baseline {input.baseline} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
-        "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
+        with_table(
+            "omnilidar kitti360-generation --index {input.index} --prompts {input.prompts} --full {input.full} "
+            "--baseline {input.baseline} {params.weights} {params.samples} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
+            "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
+        )
 
 
 rule sampler_tradeoff:
@@ -231,14 +240,15 @@ rule sampler_tradeoff:
         samples=[d for dirs in TRADEOFF_SETS.values() for d in dirs],
     output:
         json="results/tradeoff.json",
-        figure=report("results/figures/tradeoff.png", caption="../workflow/report/tradeoff.rst", category="Accuracy vs time"),
+        table="results/tables/tradeoff.html",
+        figure="results/figures/tradeoff.png",
     params:
         settings=eval_settings("tradeoff"),
         seed=config["seed"],
         weights=weights_args(TRADEOFF_WEIGHTS),
         samples=sets_args(TRADEOFF_SETS),
         data_source=data_source(),
-        code=code("sampler-tradeoff"),
+        code=result_code("sampler-tradeoff"),
     log:
         "logs/evaluation/tradeoff.log",
     benchmark:
@@ -248,10 +258,12 @@ rule sampler_tradeoff:
     resources:
         **job_resources("sampler_tradeoff"),
     shell:
-        "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
-        "--checkpoint {input.checkpoint} {params.weights} {params.samples} --effects {input.effects} "
-        "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
-        "--out {output.json} --figure {output.figure} > {log} 2>&1"
+        with_table(
+            "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
+            "--checkpoint {input.checkpoint} {params.weights} {params.samples} --effects {input.effects} "
+            "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
+            "--out {output.json} --figure {output.figure} > {log} 2>&1"
+        )
 
 
 rule generator_evidence:
@@ -263,13 +275,14 @@ rule generator_evidence:
         checkpoint=f"{GENERATOR}/full/model.pt",
     output:
         json="results/generator_evidence.json",
-        markdown=report("results/generator_evidence.md", caption="../workflow/report/generator_evidence.rst", category="Generation"),
-        figure=report("results/figures/generator_evidence.png", caption="../workflow/report/generator_evidence.rst", category="Generation"),
+        table="results/tables/generator_evidence.html",
+        markdown="results/generator_evidence.md",
+        figure="results/figures/generator_evidence.png",
     params:
         settings=settings("evaluation", drop=("extractors", *[t for t in TABLES if t != "evidence"])),
         seed=config["seed"],
         data_source=data_source(),
-        code=code("generator-evidence"),
+        code=result_code("generator-evidence"),
     log:
         "logs/evaluation/generator_evidence.log",
     benchmark:
@@ -279,9 +292,11 @@ rule generator_evidence:
     resources:
         **job_resources("generator_evidence"),
     shell:
-        "omnilidar generator-evidence --domains {input.domains} --prompts {input.prompts} "
-        "--checkpoint {input.checkpoint} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
-        "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
+        with_table(
+            "omnilidar generator-evidence --domains {input.domains} --prompts {input.prompts} "
+            "--checkpoint {input.checkpoint} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
+            "--out {output.json} --markdown {output.markdown} --figure {output.figure} > {log} 2>&1"
+        )
 
 
 rule evaluation:

@@ -121,7 +121,7 @@ args = sys.argv[1:]
 for flag in ("--out", "--figure"):
     if flag in args:
         p = Path(args[args.index(flag) + 1])
-        if p.suffix in (".json", ".pt", ".png", ".npz", ".pkl"):
+        if p.suffix in (".json", ".pt", ".png", ".npz", ".pkl", ".html"):
             p.parent.mkdir(parents=True, exist_ok=True)
             p.write_text("{{}}")
         else:
