@@ -1,0 +1,66 @@
+"""The MODEL section a detector is built from: a published-style yaml plus overrides.
+
+``downstream.det.detectors.<name>`` names an OpenPCDet-style yaml
+(``config``: a file whose ``MODEL`` section, or whole content, is the model
+config, e.g. ``config/detectors/voxel_rcnn.yaml``) and ``overrides`` merged
+into it key by key (dicts recursively, everything else replaced), which is how
+the CPU default shrinks the paper's widths. The platform's anchors always
+replace ``DENSE_HEAD.ANCHOR_GENERATOR_CONFIG``, so one file serves Drone
+(Car) and Quadruped (Car, Pedestrian).
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import yaml
+
+from omnilidar.downstream.det.data_config import PlatformConfig, anchor_generator_config
+from omnilidar.errors import InputError
+
+DETECTORS = ("voxel_rcnn", "pv_rcnn")
+
+
+def merge(base: dict, overrides: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in overrides.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def read_model_yaml(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "detector config not found (downstream.det.detectors.<name>.config)")
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise InputError(path, f"not valid YAML: {str(err).splitlines()[0]}") from None
+    if not isinstance(doc, dict):
+        raise InputError(path, "detector config must be a mapping (an OpenPCDet cfg or its MODEL section)")
+    model = doc.get("MODEL", doc)
+    if not isinstance(model, dict) or "NAME" not in model:
+        raise InputError(path, "detector config has no MODEL.NAME")
+    return model
+
+
+def model_config(settings: dict, detector: str, cfg: PlatformConfig, base: dict | None = None) -> dict:
+    """The resolved MODEL section of ``detector`` for one platform."""
+    if detector not in DETECTORS:
+        raise InputError(None, f"unknown detector {detector!r}; known: {', '.join(DETECTORS)}")
+    spec = settings["detectors"][detector]
+    model = merge(base if base is not None else read_model_yaml(spec["config"]), spec.get("overrides") or {})
+    model.setdefault("DENSE_HEAD", {})["ANCHOR_GENERATOR_CONFIG"] = anchor_generator_config(cfg)
+    return model
+
+
+def build(model: dict, cfg: PlatformConfig):
+    """The detector module (``omnilidar.downstream.det.models.build_detector``) for a resolved MODEL section."""
+    from omnilidar.downstream.det.models import build_detector
+
+    return build_detector(model, num_class=len(cfg.class_names), class_names=list(cfg.class_names),
+                          point_cloud_range=list(cfg.point_cloud_range), voxel_size=list(cfg.voxel_size))
