@@ -285,6 +285,7 @@ def data_source(*datasets):
 RESULT_DATASETS = {
     "semkitti_*pct, semkittic, semanticstf, gda_curve": ("semantickitti",),
     "nusc_beam32_*pct": ("nuscenes",),
+    "pi3det_*pct": ("pi3det",),
     "kitti360_generation": ("kitti360",),
     "generation_quality, ablation, tradeoff, generator_evidence": (),
 }
