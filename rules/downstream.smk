@@ -247,7 +247,7 @@ rule semkitti_result:
     params:
         experiment=lambda w: f"semkitti_{w.pct}pct",
         kind="semkitti",
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         code=code("gda-result"),
@@ -275,7 +275,7 @@ rule semkittic_result:
     params:
         experiment="semkittic",
         kind="semkittic",
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         code=code("gda-result"),
@@ -305,7 +305,7 @@ rule nusc_beam32_result:
     params:
         experiment=lambda w: f"nusc_beam32_{w.pct}pct",
         kind="nusc_beam32",
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("nuscenes"),
         code=code("gda-result"),
@@ -334,7 +334,7 @@ rule semanticstf_result:
     params:
         experiment="semanticstf",
         kind="semanticstf",
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         standin="" if EXPERIMENTS["semanticstf"]["subsets"] else "--standin",
@@ -363,7 +363,7 @@ rule gda_curve:
         json="results/gda_curve.json",
         figure=report("results/figures/gda_curve.png", caption="../workflow/report/gda_curve.rst", category="Accuracy vs time"),
     params:
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         code=code("gda-curve"),
