@@ -1,0 +1,198 @@
+"""Detection box and point operators against brute-force references."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from omnilidar.downstream.det.ops import iou
+
+shapely = pytest.importorskip("shapely")
+from shapely.geometry import Polygon  # noqa: E402
+
+
+def _random_boxes(gen: torch.Generator, n: int, spread: float = 3.0) -> torch.Tensor:
+    centre = (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5) * 2 * spread
+    size = 0.2 + 4 * torch.rand(n, 3, generator=gen, dtype=torch.float64)
+    heading = (torch.rand(n, 1, generator=gen, dtype=torch.float64) - 0.5) * 4 * math.pi
+    return torch.cat([centre, size, heading], dim=1)
+
+
+def _polygon(cx, cy, ex, ey, ccw_angle):
+    c, s = math.cos(ccw_angle), math.sin(ccw_angle)
+    pts = [(cx + c * u - s * v, cy + s * u + c * v) for u, v in ((ex, ey), (-ex, ey), (-ex, -ey), (ex, -ey))]
+    return Polygon(pts)
+
+
+def _shapely_overlap_bev(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
+    pa = [_polygon(x[0], x[1], x[3] / 2, x[4] / 2, x[6]) for x in a.tolist()]
+    pb = [_polygon(x[0], x[1], x[3] / 2, x[4] / 2, x[6]) for x in b.tolist()]
+    return np.array([[p.intersection(q).area for q in pb] for p in pa]).reshape(len(pa), len(pb))
+
+
+# ---------------------------------------------------------------- IoU
+
+
+def test_bev_overlap_matches_shapely():
+    gen = torch.Generator().manual_seed(0)
+    a, b = _random_boxes(gen, 40), _random_boxes(gen, 50)
+    got = iou.boxes_overlap_bev(a, b)
+    want = _shapely_overlap_bev(a, b)
+    assert got.dtype == torch.float64 and (want > 0).mean() > 0.3
+    np.testing.assert_allclose(got.numpy(), want, atol=1e-9)
+    union = (a[:, 3] * a[:, 4])[:, None] + (b[:, 3] * b[:, 4])[None] - torch.from_numpy(want)
+    np.testing.assert_allclose(iou.boxes_iou_bev(a, b).numpy(), want / union.numpy(), atol=1e-9)
+
+
+def test_iou3d_is_bev_overlap_times_height_overlap():
+    gen = torch.Generator().manual_seed(1)
+    a, b = _random_boxes(gen, 30), _random_boxes(gen, 20)
+    inter_bev = _shapely_overlap_bev(a, b)
+    an, bn = a.numpy(), b.numpy()
+    top = np.minimum(an[:, None, 2] + an[:, None, 5] / 2, bn[None, :, 2] + bn[None, :, 5] / 2)
+    bottom = np.maximum(an[:, None, 2] - an[:, None, 5] / 2, bn[None, :, 2] - bn[None, :, 5] / 2)
+    inter = inter_bev * np.clip(top - bottom, 0, None)
+    vol_a, vol_b = an[:, 3:6].prod(1), bn[:, 3:6].prod(1)
+    want = inter / (vol_a[:, None] + vol_b[None] - inter)
+    np.testing.assert_allclose(iou.boxes_iou3d(a, b).numpy(), want, atol=1e-9)
+    assert (want > 0).any()
+
+
+def test_rotated_overlap_2d_turns_clockwise_like_kitti_eval():
+    gen = torch.Generator().manual_seed(2)
+    a = torch.cat([torch.rand(25, 2, generator=gen) * 4, 0.5 + 3 * torch.rand(25, 2, generator=gen),
+                   (torch.rand(25, 1, generator=gen) - 0.5) * 6], dim=1).double()
+    b = a.flip(0) + 0.3
+    got = iou.rotated_overlap_2d(a, b)
+    # [cx, cy, w, l, angle]: w along the own first axis, angle clockwise.
+    pa = [_polygon(r[0], r[1], r[2] / 2, r[3] / 2, -r[4]) for r in a.tolist()]
+    pb = [_polygon(r[0], r[1], r[2] / 2, r[3] / 2, -r[4]) for r in b.tolist()]
+    want = np.array([[p.intersection(q).area for q in pb] for p in pa])
+    np.testing.assert_allclose(got.numpy(), want, atol=1e-9)
+    # Clockwise is not counter-clockwise: mirrored angles give other overlaps here.
+    mirrored = [_polygon(r[0], r[1], r[2] / 2, r[3] / 2, r[4]) for r in a.tolist()]
+    assert not np.allclose(want, [[p.intersection(q).area for q in pb] for p in mirrored], atol=1e-3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_identical_boxes_have_iou_exactly_one(dtype):
+    gen = torch.Generator().manual_seed(3)
+    boxes = _random_boxes(gen, 20, spread=50.0).to(dtype)
+    for fn in (iou.boxes_iou_bev, iou.boxes_iou3d):
+        diag = torch.diagonal(fn(boxes, boxes))
+        assert diag.dtype == dtype
+        assert torch.equal(diag, torch.ones_like(diag)), fn.__name__
+
+
+def test_touching_and_disjoint_boxes_have_iou_zero():
+    a = torch.tensor([[0.0, 0, 0, 2, 2, 2, 0]])
+    b = torch.tensor([[2.0, 0, 0, 2, 2, 2, 0], [0, 2, 0, 2, 2, 2, 0], [0, 0, 2, 2, 2, 2, 0], [5, 5, 0, 1, 1, 1, 0.4]])
+    assert torch.equal(iou.boxes_iou_bev(a, b[[0, 1, 3]]), torch.zeros(1, 3))
+    assert torch.equal(iou.boxes_iou3d(a, b), torch.zeros(1, 4))
+
+
+def test_zero_size_boxes_give_zero_not_nan():
+    a = torch.tensor([[0.0, 0, 0, 0, 0, 0, 0], [0, 0, 0, 2, 0, 1, 0.3], [0, 0, 0, 2, 2, 2, 0]])
+    for fn in (iou.boxes_iou_bev, iou.boxes_iou3d, iou.boxes_overlap_bev, iou.boxes_iou_bev_nearest):
+        out = fn(a, a)
+        assert torch.isfinite(out).all(), fn.__name__
+        assert torch.equal(out[:2], torch.zeros(2, 3)) and torch.equal(out[:, :2], torch.zeros(3, 2)), fn.__name__
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_half_turns_and_quarter_turned_squares_are_the_same_rectangle(dtype):
+    box = torch.tensor([[1.0, -2.0, 0.5, 4.0, 1.5, 1.6, 0.0]], dtype=dtype)
+    turned = box.repeat(3, 1)
+    turned[:, 6] = torch.tensor([math.pi, -math.pi, 3 * math.pi], dtype=dtype)
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(iou.boxes_iou_bev(box, turned), torch.ones(1, 3, dtype=dtype), atol=tol, rtol=0)
+    torch.testing.assert_close(iou.boxes_iou_bev(turned, turned), torch.ones(3, 3, dtype=dtype), atol=tol, rtol=0)
+    square = torch.tensor([[3.0, 3.0, 0.0, 2.0, 2.0, 2.0, 0.0], [3.0, 3.0, 0.0, 2.0, 2.0, 2.0, math.pi / 2]], dtype=dtype)
+    torch.testing.assert_close(iou.boxes_iou3d(square, square), torch.ones(2, 2, dtype=dtype), atol=tol, rtol=0)
+
+
+def test_nearly_parallel_boxes_far_from_origin_match_the_same_pair_at_origin():
+    near = torch.tensor([[0.0, 0.0, 0.0, 4.2, 1.8, 1.5, 0.0], [0.05, 0.02, 0.0, 4.2, 1.8, 1.5, 1e-5],
+                         [0.0, 1.8, 0.0, 4.2, 1.8, 1.5, 0.0]], dtype=torch.float64)
+    far = near.clone()
+    far[:, 0] += 1e4
+    far[:, 1] -= 1e4
+    want = iou.boxes_iou_bev(near, near)
+    inter = torch.from_numpy(_shapely_overlap_bev(near, near))
+    area = near[:, 3] * near[:, 4]
+    torch.testing.assert_close(want, inter / (area[:, None] + area[None] - inter), atol=1e-9, rtol=0)
+    torch.testing.assert_close(iou.boxes_iou_bev(far, far), want, atol=1e-9, rtol=0)
+    assert 0.9 < want[0, 1] < 1.0 and want[0, 2] == 0 and want[2, 0] == 0  # shared edge -> 0
+    # The same far pair in float32 (centres rounded to float32) stays sane.
+    got32 = iou.boxes_iou_bev(far.float(), far.float())
+    assert torch.isfinite(got32).all() and (got32 >= 0).all() and (got32 <= 1).all()
+    torch.testing.assert_close(got32.double(), want, atol=5e-3, rtol=0)
+
+
+def test_coincident_edges_and_corner_touching_are_exact():
+    a = torch.tensor([[0.0, 0.0, 0.0, 2.0, 2.0, 1.0, 0.0]], dtype=torch.float64)
+    b = torch.tensor([[1.0, 0.0, 0.0, 2.0, 2.0, 1.0, 0.0],   # half overlap, two shared edges
+                      [1.0, 1.0, 0.0, 2.0, 2.0, 1.0, 0.0],   # quarter overlap
+                      [2.0, 2.0, 0.0, 2.0, 2.0, 1.0, 0.0],   # corner touching
+                      [0.0, 0.0, 0.0, 2.0, 1.0, 1.0, 0.0]],  # inside, sharing two edges
+                     dtype=torch.float64)
+    torch.testing.assert_close(iou.boxes_overlap_bev(a, b), torch.tensor([[2.0, 1.0, 0.0, 2.0]], dtype=torch.float64),
+                               atol=1e-12, rtol=0)
+
+
+def test_empty_inputs_give_empty_matrices():
+    boxes = torch.zeros(3, 7)
+    empty = torch.zeros(0, 7)
+    for fn in (iou.boxes_iou_bev, iou.boxes_iou3d, iou.boxes_overlap_bev, iou.boxes_iou_bev_nearest):
+        assert fn(empty, boxes).shape == (0, 3) and fn(boxes, empty).shape == (3, 0)
+    assert iou.rotated_overlap_2d(torch.zeros(0, 5), torch.zeros(2, 5)).shape == (0, 2)
+
+
+def test_bad_shapes_are_refused():
+    with pytest.raises(ValueError, match=r"boxes_b must be an \(N, 7\)"):
+        iou.boxes_iou_bev(torch.zeros(2, 7), torch.zeros(2, 5))
+    with pytest.raises(ValueError, match="floating point"):
+        iou.boxes_iou3d(torch.zeros(2, 7, dtype=torch.long), torch.zeros(2, 7))
+
+
+def test_nearest_bev_iou_snaps_headings_to_the_axes():
+    a = torch.tensor([[0.0, 0, 0, 4, 2, 1, 0.2], [0.0, 0, 0, 4, 2, 1, math.pi / 2 - 0.3],
+                      [0.0, 0, 0, 4, 2, 1, -math.pi + 0.1]])
+    b = torch.tensor([[0.0, 0, 0, 4, 2, 1, 0.0], [1.0, 0, 0, 2, 4, 1, 0.0]])
+    got = iou.boxes_iou_bev_nearest(a, b)
+    # a0 and a2 snap to 0 deg (4 x 2 along x), a1 to 90 deg (2 x 4); every
+    # non-identical pair overlaps by 4 m^2 of a 12 m^2 union.
+    want = torch.tensor([[1.0, 1 / 3], [1 / 3, 1 / 3], [1.0, 1 / 3]])
+    torch.testing.assert_close(got, want)
+
+
+_finite = dict(allow_nan=False, allow_infinity=False)
+_box = st.tuples(
+    st.floats(-5, 5, **_finite), st.floats(-5, 5, **_finite), st.floats(-2, 2, **_finite),
+    st.floats(0.05, 6, **_finite), st.floats(0.05, 6, **_finite), st.floats(0.05, 4, **_finite),
+    st.floats(-4, 4, **_finite),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(_box, min_size=1, max_size=6), st.lists(_box, min_size=1, max_size=6))
+def test_iou_properties(rows_a, rows_b):
+    a = torch.tensor(rows_a, dtype=torch.float64)
+    b = torch.tensor(rows_b, dtype=torch.float64)
+    ab, ba = iou.boxes_iou_bev(a, b), iou.boxes_iou_bev(b, a)
+    assert ((ab >= 0) & (ab <= 1 + 1e-12)).all()
+    torch.testing.assert_close(ab, ba.T, atol=1e-10, rtol=0)
+    torch.testing.assert_close(torch.diagonal(iou.boxes_iou_bev(a, a)), torch.ones(len(a), dtype=a.dtype),
+                               atol=1e-12, rtol=0)
+    d3 = iou.boxes_iou3d(a, b)
+    assert ((d3 >= 0) & (d3 <= 1 + 1e-12)).all()
+    torch.testing.assert_close(d3, iou.boxes_iou3d(b, a).T, atol=1e-10, rtol=0)
+    # With one height interval inside the other, 3D IoU cannot exceed BEV IoU.
+    b_tall = b.clone()
+    b_tall[:, 2], b_tall[:, 5] = 0.0, 100.0
+    assert (iou.boxes_iou3d(a, b_tall) <= iou.boxes_iou_bev(a, b_tall) + 1e-12).all()
