@@ -196,3 +196,59 @@ def test_iou_properties(rows_a, rows_b):
     b_tall = b.clone()
     b_tall[:, 2], b_tall[:, 5] = 0.0, 100.0
     assert (iou.boxes_iou3d(a, b_tall) <= iou.boxes_iou_bev(a, b_tall) + 1e-12).all()
+
+
+# ---------------------------------------------------------------- NMS
+
+from omnilidar.downstream.det.ops import nms  # noqa: E402
+
+
+def _brute_force_nms(boxes, scores, thresh, pre=None, post=None, aligned=False):
+    order = sorted(range(len(scores)), key=lambda i: (-float(scores[i]), i))[:pre]
+    b = boxes.clone()
+    if aligned:
+        b[:, 6] = 0
+    ious = iou.boxes_iou_bev(b, b).tolist()
+    keep = []
+    for i in order:
+        if all(ious[i][j] <= thresh for j in keep):
+            keep.append(i)
+    return keep[:post]
+
+
+@pytest.mark.parametrize("aligned", [False, True])
+def test_nms_matches_brute_force_greedy(aligned):
+    gen = torch.Generator().manual_seed(4)
+    boxes = _random_boxes(gen, 120, spread=6.0).float()
+    scores = torch.rand(120, generator=gen)
+    scores[10] = scores[11]  # a tie: the lower index goes first
+    for thresh, pre, post in ((0.1, None, None), (0.5, 80, None), (0.3, None, 7), (0.0, 50, 20)):
+        got = nms.nms_rotated(boxes, scores, thresh, pre, post, axis_aligned=aligned)
+        assert got.dtype == torch.long
+        assert got.tolist() == _brute_force_nms(boxes, scores, thresh, pre, post, aligned)
+    assert 0 < len(nms.nms_rotated(boxes, scores, 0.1)) < 120  # suppression happened
+    assert nms.nms_rotated(boxes[:0], scores[:0], 0.5).shape == (0,)
+
+
+def test_nms_suppresses_only_above_threshold():
+    boxes = torch.tensor([[0.0, 0, 0, 2, 2, 1, 0], [1.0, 0, 0, 2, 2, 1, 0], [0.0, 0, 0, 2, 2, 1, math.pi]])
+    scores = torch.tensor([0.9, 0.8, 0.7])
+    # IoU(0, 1) = 1/3; box 2 is box 0 turned half a turn (IoU 1).
+    assert nms.nms_rotated(boxes, scores, 1 / 3 + 1e-6).tolist() == [0, 1]
+    assert nms.nms_rotated(boxes, scores, 0.3).tolist() == [0]
+
+
+def test_class_agnostic_and_multi_class_nms_follow_openpcdet():
+    cfg = {"NMS_TYPE": "nms_gpu", "NMS_THRESH": 0.1, "NMS_PRE_MAXSIZE": 4, "NMS_POST_MAXSIZE": 2}
+    boxes = torch.tensor([[0.0, 0, 0, 2, 2, 1, 0], [0.2, 0, 0, 2, 2, 1, 0], [5.0, 0, 0, 2, 2, 1, 0],
+                          [10.0, 0, 0, 2, 2, 1, 0], [20.0, 0, 0, 2, 2, 1, 0]])
+    scores = torch.tensor([0.5, 0.9, 0.05, 0.6, 0.7])
+    sel, sel_scores = nms.class_agnostic_nms(scores, boxes, cfg, score_thresh=0.1)
+    assert sel.tolist() == [1, 4] and torch.equal(sel_scores, scores[[1, 4]])
+    cls = torch.stack([scores, 1 - scores], dim=1)
+    s, labels, b = nms.multi_class_nms(cls, boxes, dict(cfg, NMS_POST_MAXSIZE=10), score_thresh=0.35)
+    assert labels.tolist() == [0, 0, 0, 1, 1, 1]
+    torch.testing.assert_close(s, torch.tensor([0.9, 0.7, 0.6, 0.95, 0.5, 0.4]))
+    assert torch.equal(b, boxes[[1, 4, 3, 2, 0, 3]])
+    with pytest.raises(ValueError, match="NMS_TYPE 'soft'"):
+        nms.class_agnostic_nms(scores, boxes, dict(cfg, NMS_TYPE="soft"))

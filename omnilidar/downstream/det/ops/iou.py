@@ -116,25 +116,34 @@ def _pair_overlap(ra: torch.Tensor, rb: torch.Tensor) -> torch.Tensor:
     return _polygon_area(poly, count)
 
 
-def _overlap_matrix(ra: torch.Tensor, rb: torch.Tensor) -> torch.Tensor:
-    """(N, M) float64 intersection areas of rectangles (N, 5) x (M, 5) given as
-    [cx, cy, ex, ey, heading] float64 (half extents, counter-clockwise)."""
+def _candidate_pairs(ra: torch.Tensor, rb: torch.Tensor, upper_only: bool = False):
+    """Yield (ia, ib) index chunks of the pairs whose circumscribed circles meet
+    (all others are disjoint); ``upper_only`` keeps ia < ib (one set against itself)."""
     n, m = len(ra), len(rb)
-    out = ra.new_zeros(n, m)
     if n == 0 or m == 0:
-        return out
-    # Circumscribed circles: pairs farther apart than the sum of radii are disjoint.
+        return
     rad_a = torch.hypot(ra[:, 2], ra[:, 3])
     rad_b = torch.hypot(rb[:, 2], rb[:, 3])
+    cols = torch.arange(m, device=ra.device)
     rows = max(1, _PREFILTER_CHUNK // m)
     for r0 in range(0, n, rows):
         sl = slice(r0, min(n, r0 + rows))
-        gap = torch.cdist(ra[sl, :2], rb[:, :2]) - (rad_a[sl, None] + rad_b[None, :])
-        ia, ib = torch.nonzero(gap <= 1e-9 * (1.0 + rad_a[sl, None] + rad_b[None, :]), as_tuple=True)
+        reach = rad_a[sl, None] + rad_b[None, :]
+        near = torch.cdist(ra[sl, :2], rb[:, :2]) - reach <= 1e-9 * (1.0 + reach)
+        if upper_only:
+            near &= cols[None, :] > torch.arange(sl.start, sl.stop, device=ra.device)[:, None]
+        ia, ib = torch.nonzero(near, as_tuple=True)
         ia = ia + r0
         for p0 in range(0, len(ia), _PAIR_CHUNK):
-            pa, pb = ia[p0:p0 + _PAIR_CHUNK], ib[p0:p0 + _PAIR_CHUNK]
-            out[pa, pb] = _pair_overlap(ra[pa], rb[pb])
+            yield ia[p0:p0 + _PAIR_CHUNK], ib[p0:p0 + _PAIR_CHUNK]
+
+
+def _overlap_matrix(ra: torch.Tensor, rb: torch.Tensor) -> torch.Tensor:
+    """(N, M) float64 intersection areas of rectangles (N, 5) x (M, 5) given as
+    [cx, cy, ex, ey, heading] float64 (half extents, counter-clockwise)."""
+    out = ra.new_zeros(len(ra), len(rb))
+    for ia, ib in _candidate_pairs(ra, rb):
+        out[ia, ib] = _pair_overlap(ra[ia], rb[ib])
     return out
 
 
@@ -166,6 +175,23 @@ def boxes_iou_bev(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
     inter = _bev_overlap64(boxes_a, boxes_b)
     union = _areas(boxes_a)[:, None] + _areas(boxes_b).to(inter.device)[None, :] - inter
     return (inter / union.clamp(min=_BEV_EPS)).to(_result_dtype(boxes_a, boxes_b))
+
+
+def iou_bev_self_pairs(boxes: torch.Tensor, axis_aligned: bool = False):
+    """Sparse BEV IoU of a box set with itself: (i, j, iou) over the pairs i < j
+    that can overlap (float64 IoU), without an (N, N) matrix; for NMS.
+    ``axis_aligned`` ignores the headings (dx along x), as OpenPCDet's iou_normal."""
+    _check_boxes(boxes, 7, "boxes")
+    rects, areas = _bev_rects(boxes), _areas(boxes)
+    if axis_aligned:
+        rects[:, 4] = 0.0
+    parts = [(ia, ib, _pair_overlap(rects[ia], rects[ib])) for ia, ib in _candidate_pairs(rects, rects, True)]
+    if not parts:
+        empty = torch.zeros(0, dtype=torch.long, device=boxes.device)
+        return empty, empty, rects.new_zeros(0)
+    ia, ib, inter = (torch.cat(t) for t in zip(*parts))
+    union = areas[ia] + areas[ib] - inter
+    return ia, ib, inter / union.clamp(min=_BEV_EPS)
 
 
 def boxes_iou3d(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
