@@ -252,3 +252,39 @@ def test_class_agnostic_and_multi_class_nms_follow_openpcdet():
     assert torch.equal(b, boxes[[1, 4, 3, 2, 0, 3]])
     with pytest.raises(ValueError, match="NMS_TYPE 'soft'"):
         nms.class_agnostic_nms(scores, boxes, dict(cfg, NMS_TYPE="soft"))
+
+
+# ---------------------------------------------------------------- points in boxes
+
+from omnilidar.downstream.det.ops import points as det_points  # noqa: E402
+
+
+def test_points_in_boxes_match_a_per_pair_loop():
+    gen = torch.Generator().manual_seed(5)
+    boxes = _random_boxes(gen, 12, spread=4.0).float()
+    pts = (torch.rand(3000, 4, generator=gen) - 0.5) * 10
+    mask = det_points.points_in_boxes_mask(pts, boxes)
+    want = torch.zeros(3000, 12, dtype=torch.bool)
+    for j, (cx, cy, cz, dx, dy, dz, h) in enumerate(boxes.double().tolist()):
+        for i, (x, y, z) in enumerate(pts[:, :3].double().tolist()):
+            u = (x - cx) * math.cos(h) + (y - cy) * math.sin(h)
+            v = -(x - cx) * math.sin(h) + (y - cy) * math.cos(h)
+            want[i, j] = abs(u) <= dx / 2 and abs(v) <= dy / 2 and abs(z - cz) <= dz / 2
+    assert torch.equal(mask, want) and want.any(dim=1).float().mean() > 0.05
+    first = det_points.points_in_boxes(pts, boxes)
+    expected = torch.where(want.any(1), want.int().argmax(1), -1)  # argmax: first True
+    assert first.dtype == torch.long and torch.equal(first, expected)
+    assert (want.sum(1) > 1).any()  # overlapping boxes exercised the lowest-index rule
+
+
+def test_points_on_faces_count_and_empty_inputs():
+    box = torch.tensor([[1.0, 2.0, 0.5, 2.0, 4.0, 1.0, math.pi / 2]])
+    # Rotated by 90 deg: x extent 4 (dy), y extent 2 (dx).
+    pts = torch.tensor([[3.0, 2.0, 0.5], [1.0, 3.0, 1.0], [1.0, 2.0, 0.0], [3.01, 2.0, 0.5], [1.0, 2.0, 1.01]],
+                       dtype=torch.float64)
+    assert det_points.points_in_boxes_mask(pts, box)[:, 0].tolist() == [True, True, True, False, False]
+    assert det_points.points_in_boxes(pts, box).tolist() == [0, 0, 0, -1, -1]
+    assert det_points.points_in_boxes_mask(pts[:0], box).shape == (0, 1)
+    assert det_points.points_in_boxes(pts, box[:0]).tolist() == [-1] * 5
+    with pytest.raises(ValueError, match="boxes must be"):
+        det_points.points_in_boxes(pts, box[:, :6])
