@@ -288,3 +288,130 @@ def test_points_on_faces_count_and_empty_inputs():
     assert det_points.points_in_boxes(pts, box[:0]).tolist() == [-1] * 5
     with pytest.raises(ValueError, match="boxes must be"):
         det_points.points_in_boxes(pts, box[:, :6])
+
+
+# ---------------------------------------------------------------- sampling and grouping
+
+from omnilidar.downstream.det.ops import sampling  # noqa: E402
+
+
+def test_farthest_point_sample_matches_a_brute_force_loop():
+    gen = torch.Generator().manual_seed(6)
+    xyz = torch.rand(2, 300, 3, generator=gen) * 10
+    xyz[1, 7] = xyz[1, 3]  # duplicate points
+    got = sampling.farthest_point_sample(xyz, 40)
+    for b in range(2):
+        chosen, nearest = [0], [float("inf")] * 300
+        pts = xyz[b].tolist()
+        for _ in range(39):
+            last = pts[chosen[-1]]
+            for k, p in enumerate(pts):
+                nearest[k] = min(nearest[k], sum((p[i] - last[i]) ** 2 for i in range(3)))
+            chosen.append(max(range(300), key=lambda k: (nearest[k], -k)))
+        assert got[b].tolist() == chosen
+    assert got.dtype == torch.long and len(set(got[0].tolist())) == 40
+    # More samples than points: every point once, then index 0 again.
+    few = sampling.farthest_point_sample(xyz[:, :5], 8)
+    assert sorted(few[0, :5].tolist()) == [0, 1, 2, 3, 4] and few[0, 5:].tolist() == [0, 0, 0]
+
+
+def test_ball_query_takes_the_first_points_in_index_order_pads_and_flags_empty_balls():
+    xyz = torch.tensor([[5.0, 0, 0], [0.5, 0, 0], [0, 0, 0], [0.9, 0, 0], [1.0, 0, 0], [0.2, 0, 0],  # sample 0
+                        [0.1, 0, 0], [9.0, 0, 0]])  # sample 1
+    new_xyz = torch.tensor([[0.0, 0, 0], [0.0, 0, 0.99], [20.0, 0, 0], [0.0, 0, 0]])
+    idx, empty = sampling.ball_query(1.0, 3, xyz, torch.tensor([6, 2]), new_xyz, torch.tensor([3, 1]))
+    # Centre 0: points 1, 2, 3, 5 lie within (point 4 at distance exactly 1 does not): first three.
+    # Centre 1: only point 2 (distance 0.99): padded with it. Centre 2: empty.
+    # Centre 3 (sample 1): local point 0.
+    assert idx.tolist() == [[1, 2, 3], [2, 2, 2], [0, 0, 0], [0, 0, 0]]
+    assert empty.tolist() == [False, False, True, False]
+
+
+def test_ball_query_matches_a_brute_force_loop():
+    gen = torch.Generator().manual_seed(7)
+    xyz = torch.rand(250, 3, generator=gen) * 4
+    new_xyz = torch.rand(60, 3, generator=gen) * 5
+    xyz_cnt, new_cnt = torch.tensor([100, 0, 150]), torch.tensor([20, 15, 25])
+    idx, empty = sampling.ball_query(0.6, 5, xyz, xyz_cnt, new_xyz, new_cnt)
+    starts, centre_batch = [0, 100, 100], [0] * 20 + [1] * 15 + [2] * 25
+    for m, b in enumerate(centre_batch):
+        pts = xyz[starts[b]:starts[b] + int(xyz_cnt[b])]
+        hits = [k for k in range(len(pts)) if float(((pts[k] - new_xyz[m]) ** 2).sum()) < 0.36][:5]
+        want = (hits + [hits[0]] * 5)[:5] if hits else [0] * 5
+        assert idx[m].tolist() == want and bool(empty[m]) == (not hits)
+    assert empty[20:35].all() and (~empty).sum() > 10 and (idx[~empty][:, 0] != idx[~empty][:, -1]).any()
+
+
+def test_grouping_and_query_and_group():
+    gen = torch.Generator().manual_seed(8)
+    xyz = torch.rand(30, 3, generator=gen)
+    feats = torch.rand(30, 4, generator=gen, requires_grad=True)
+    xyz_cnt, new_cnt = torch.tensor([10, 20]), torch.tensor([2, 3])
+    idx = torch.tensor([[0, 1], [9, 9], [0, 19], [5, 5], [3, 0]])
+    out = sampling.grouping_operation(feats, xyz_cnt, idx, new_cnt)
+    assert out.shape == (5, 4, 2)
+    assert torch.equal(out[2, :, 1], feats[10 + 19]) and torch.equal(out[1, :, 0], feats[9])
+    out.sum().backward()
+    assert feats.grad[9].tolist() == [2.0] * 4 and feats.grad[15].tolist() == [2.0] * 4
+    new_xyz = torch.cat([xyz[[0, 1]], torch.full((1, 3), 50.0), xyz[[12, 13]]])
+    grouped, gidx, empty = sampling.query_and_group(0.3, 4, xyz, xyz_cnt, new_xyz, new_cnt, feats.detach())
+    assert grouped.shape == (5, 7, 4) and empty.tolist() == [False, False, True, False, False]
+    assert torch.equal(grouped[2], torch.zeros(7, 4))
+    want_idx, _ = sampling.ball_query(0.3, 4, xyz, xyz_cnt, new_xyz, new_cnt)
+    assert torch.equal(gidx, want_idx)
+    torch.testing.assert_close(grouped[3, :3, 0], xyz[10 + gidx[3, 0]] - new_xyz[3])
+    torch.testing.assert_close(grouped[3, 3:, 1], feats.detach()[10 + gidx[3, 1]])
+    module_out, module_idx = sampling.QueryAndGroup(0.3, 4)(xyz, xyz_cnt, new_xyz, new_cnt, feats.detach())
+    assert torch.equal(module_out, grouped) and torch.equal(module_idx, gidx)
+
+
+def _brute_force_voxel_query(max_range, radius, nsample, xyz, new_xyz, new_coords, point_indices):
+    _, nz, ny, nx = point_indices.shape
+    rows, empties = [], []
+    for m in range(len(new_xyz)):
+        b, cz, cy, cx = new_coords[m].tolist()
+        found = []
+        for dz in range(-max_range[0], max_range[0] + 1):
+            for dy in range(-max_range[1], max_range[1] + 1):
+                for dx in range(-max_range[2], max_range[2] + 1):
+                    z, y, x = cz + dz, cy + dy, cx + dx
+                    if not (0 <= z < nz and 0 <= y < ny and 0 <= x < nx):
+                        continue
+                    k = int(point_indices[b, z, y, x])
+                    if k >= 0 and float(((xyz[k] - new_xyz[m]) ** 2).sum()) <= radius ** 2:
+                        found.append(k)
+        empties.append(not found)
+        rows.append((found[:nsample] + [found[0]] * nsample)[:nsample] if found else [0] * nsample)
+    return rows, empties
+
+
+def test_voxel_query_matches_the_scan_order_of_voxel_rcnn():
+    gen = torch.Generator().manual_seed(9)
+    nz, ny, nx, voxel = 3, 8, 8, 0.5
+    occupied = torch.rand(2, nz, ny, nx, generator=gen) < 0.4
+    occupied[0, :, :3, :3] = False  # the window around voxel (0, 1, 0, 0) is empty
+    coords = occupied.nonzero()  # (P, 4) b z y x; its row order makes point indices global
+    xyz = (coords[:, [3, 2, 1]].float() + torch.rand(len(coords), 3, generator=gen)) * voxel
+    point_indices = torch.full((2, nz, ny, nx), -1, dtype=torch.int32)
+    point_indices[occupied] = torch.arange(len(coords), dtype=torch.int32)
+    new_coords = torch.cat([torch.randint(0, 2, (40, 1), generator=gen), torch.randint(0, nz, (40, 1), generator=gen),
+                            torch.randint(0, ny, (40, 2), generator=gen)], dim=1)
+    new_coords = torch.cat([torch.tensor([[0, 1, 0, 0]]), new_coords])
+    new_coords = new_coords[new_coords[:, 0].argsort(stable=True)]
+    new_xyz = (new_coords[:, [3, 2, 1]].float() + 0.5) * voxel
+    idx, empty = sampling.voxel_query((1, 2, 2), 0.8, 6, xyz, new_xyz, new_coords, point_indices)
+    want, want_empty = _brute_force_voxel_query((1, 2, 2), 0.8, 6, xyz, new_xyz, new_coords, point_indices)
+    assert idx.tolist() == want and empty.tolist() == want_empty
+    assert any(want_empty) and not all(want_empty)
+    assert any(len(set(row)) == 6 for row in want)  # more than nsample hits: truncated in scan order
+    # The grouping module turns global indices into sample-local ones.
+    xyz_cnt = torch.bincount(coords[:, 0], minlength=2)
+    new_cnt = torch.bincount(new_coords[:, 0], minlength=2)
+    feats = torch.rand(len(coords), 5, generator=gen)
+    grouper = sampling.VoxelQueryAndGrouping((1, 2, 2), 0.8, 6)
+    g_feats, g_xyz, g_empty = grouper(new_coords, xyz, xyz_cnt, new_xyz, new_cnt, feats, point_indices)
+    assert torch.equal(g_empty, empty)
+    start = (torch.cumsum(xyz_cnt, 0) - xyz_cnt)[new_coords[:, 0]][:, None]
+    flat = torch.where(empty[:, None], start, idx)  # empty balls group local point 0
+    assert torch.equal(g_feats, feats[flat].permute(0, 2, 1))
+    assert torch.equal(g_xyz, xyz[flat].permute(0, 2, 1))
