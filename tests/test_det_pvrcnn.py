@@ -1,0 +1,203 @@
+"""PV-RCNN's own modules: set abstraction, keypoint head, RoI-grid head, detector wiring."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from omnilidar.downstream.det.models.dense_heads.point_head_simple import PointHeadSimple
+from omnilidar.downstream.det.models.pfe.voxel_set_abstraction import (
+    VoxelSetAbstraction,
+    bilinear_interpolate,
+    voxel_centers,
+)
+from omnilidar.downstream.det.models.pointnet2_stack import StackSAModuleMSG
+from omnilidar.sparse.tensor import SparseTensor
+
+POINT_CLOUD_RANGE = [0.0, -4.0, -2.0, 8.0, 4.0, 2.0]
+VOXEL_SIZE = [0.1, 0.1, 0.2]
+
+
+def random_points(batch_size: int, n: int, seed: int) -> torch.Tensor:
+    """(B * n, 5) [batch, x, y, z, intensity] inside POINT_CLOUD_RANGE."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(POINT_CLOUD_RANGE[3:])
+    xyz = lo + torch.rand(batch_size * n, 3, generator=g) * (hi - lo) * 0.999
+    batch = torch.arange(batch_size).repeat_interleave(n)[:, None].float()
+    return torch.cat([batch, xyz, torch.rand(batch_size * n, 1, generator=g)], dim=1)
+
+
+def sparse_map(points: torch.Tensor, channels: int, stride: int, batch_size: int, seed: int) -> SparseTensor:
+    """Occupied voxels of ``points`` at ``stride`` with random features (coords batch, x, y, z)."""
+    g = torch.Generator().manual_seed(seed)
+    origin, size = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(VOXEL_SIZE) * stride
+    xyz = ((points[:, 1:4] - origin) / size).floor().int()
+    coords = torch.unique(torch.cat([points[:, :1].int(), xyz], dim=1), dim=0)
+    grid = [math.ceil(80 / stride), math.ceil(80 / stride), math.ceil(20 / stride)]
+    return SparseTensor(torch.randn(coords.shape[0], channels, generator=g), coords, grid, batch_size)
+
+
+def test_stack_sa_module_pools_the_first_neighbours_in_the_ball():
+    torch.manual_seed(0)
+    module = StackSAModuleMSG(radii=[0.5], nsamples=[4], mlps=[[2, 5]]).eval()
+    xyz = torch.tensor([[0.0, 0, 0], [0.1, 0, 0], [3, 3, 3], [0.2, 0.1, 0], [0.3, 0, 0], [0.0, 0.4, 0],
+                        [0.0, 0, 0]])
+    feats = torch.randn(7, 2)
+    xyz_cnt = torch.tensor([6, 1], dtype=torch.int32)
+    centres = torch.tensor([[0.05, 0.0, 0.0], [10.0, 0, 0], [0.0, 0.0, 0.1]])
+    centre_cnt = torch.tensor([2, 1], dtype=torch.int32)
+    _, out = module(xyz, xyz_cnt, centres, centre_cnt, feats)
+    assert out.shape == (3, 5)
+
+    def reference(neigh: list[int], centre: torch.Tensor, offset: int = 0) -> torch.Tensor:
+        rows = [torch.cat([xyz[offset + i] - centre, feats[offset + i]]) for i in neigh]
+        x = torch.stack(rows, dim=1)[None, :, None, :] if rows else torch.zeros(1, 5, 1, 4)
+        return module.mlps[0](x).amax(dim=3).view(-1)
+
+    # sample 0, centre 0: points 0, 1, 3, 4 lie within 0.5 (point 5 at 0.4 is the fifth: dropped)
+    assert torch.allclose(out[0], reference([0, 1, 3, 4], centres[0]), atol=1e-5)
+    # sample 0, centre 1: nothing within the radius -> the MLP of all-zero columns
+    assert torch.allclose(out[1], reference([], centres[1]), atol=1e-5)
+    # sample 1 only sees its own point (index 6), never sample 0's point 0 at the same place
+    assert torch.allclose(out[2], reference([0, 0, 0, 0], centres[2], offset=6), atol=1e-5)
+
+
+def test_bilinear_interpolation_matches_grid_sample_inside_the_map():
+    g = torch.Generator().manual_seed(1)
+    image = torch.randn(5, 7, 3, generator=g)  # (H, W, C)
+    x = torch.rand(50, generator=g) * 6
+    y = torch.rand(50, generator=g) * 4
+    ours = bilinear_interpolate(image, x, y)
+    grid = torch.stack([x / 6 * 2 - 1, y / 4 * 2 - 1], dim=1).view(1, 1, -1, 2)
+    ref = F.grid_sample(image.permute(2, 0, 1)[None], grid, align_corners=True).view(3, -1).t()
+    assert torch.allclose(ours, ref, atol=1e-5)
+    # the last half cell replicates the border instead of fading to zero (OpenPCDet's quirk)
+    edge = bilinear_interpolate(image, torch.tensor([6.5]), torch.tensor([4.5]))
+    assert torch.allclose(edge[0], image[4, 6], atol=1e-6)
+
+
+def vsa_config(num_keypoints: int = 32) -> dict:
+    return {
+        "NAME": "VoxelSetAbstraction", "POINT_SOURCE": "raw_points", "NUM_KEYPOINTS": num_keypoints,
+        "NUM_OUTPUT_FEATURES": 24, "SAMPLE_METHOD": "FPS",
+        "FEATURES_SOURCE": ["bev", "x_conv1", "x_conv2", "raw_points"],
+        "SA_LAYER": {
+            "raw_points": {"MLPS": [[8, 8], [8, 8]], "POOL_RADIUS": [0.4, 0.8], "NSAMPLE": [8, 8]},
+            "x_conv1": {"DOWNSAMPLE_FACTOR": 1, "MLPS": [[4, 4]], "POOL_RADIUS": [0.4], "NSAMPLE": [8]},
+            "x_conv2": {"DOWNSAMPLE_FACTOR": 2, "INPUT_CHANNELS": 6, "MLPS": [[8, 8]], "POOL_RADIUS": [0.8],
+                        "NSAMPLE": [8]},
+        },
+    }
+
+
+def vsa_batch(batch_size: int = 2, n: int = 200) -> dict:
+    points = random_points(batch_size, n, seed=2)
+    return {
+        "batch_size": batch_size,
+        "points": points,
+        "multi_scale_3d_features": {
+            "x_conv1": sparse_map(points, 4, 1, batch_size, seed=3),
+            "x_conv2": sparse_map(points, 6, 2, batch_size, seed=4),
+        },
+        "spatial_features": torch.randn(batch_size, 5, 10, 10, generator=torch.Generator().manual_seed(5)),
+        "spatial_features_stride": 8,
+    }
+
+
+def test_voxel_set_abstraction_shapes_keypoints_and_gradients():
+    torch.manual_seed(0)
+    vsa = VoxelSetAbstraction(vsa_config(), VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=5,
+                              num_rawpoint_features=4)
+    assert vsa.num_point_features_before_fusion == 5 + 4 + 8 + 16
+    batch = vsa_batch()
+    batch["spatial_features"].requires_grad_(True)
+    out = vsa(batch)
+    coords = out["point_coords"]
+    assert coords.shape == (64, 4) and out["point_features"].shape == (64, 24)
+    assert out["point_features_before_fusion"].shape == (64, 33)
+    # keypoints are distinct raw points of their own sample, the first one FPS's start (index 0)
+    for b in range(2):
+        kp = coords[coords[:, 0] == b, 1:4]
+        own = batch["points"][batch["points"][:, 0] == b, 1:4]
+        assert kp.shape[0] == 32 and torch.unique(kp, dim=0).shape[0] == 32
+        assert torch.equal(kp[0], own[0])
+        assert bool((kp[:, None] == own[None]).all(dim=2).any(dim=1).all())
+    out["point_features"].sum().backward()
+    assert batch["spatial_features"].grad.abs().sum() > 0
+    assert all(p.grad is not None for p in vsa.SA_layers.parameters() if p.requires_grad)
+
+
+def test_voxel_set_abstraction_repeats_keypoints_of_a_sparse_sample():
+    vsa = VoxelSetAbstraction(vsa_config(num_keypoints=12), VOXEL_SIZE, POINT_CLOUD_RANGE,
+                              num_bev_features=5, num_rawpoint_features=4).eval()
+    batch = vsa_batch(batch_size=1, n=5)
+    coords = vsa(batch)["point_coords"]
+    assert coords.shape == (12, 4)
+    assert torch.equal(coords[:5], coords[5:10]) and torch.equal(coords[:2], coords[10:12])
+    assert torch.unique(coords[:5, 1:4], dim=0).shape[0] == 5
+
+
+def test_voxel_set_abstraction_rejects_a_mismatched_backbone_width():
+    vsa = VoxelSetAbstraction(vsa_config(), VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=5,
+                              num_rawpoint_features=4)
+    batch = vsa_batch()
+    batch["multi_scale_3d_features"]["x_conv2"] = sparse_map(batch["points"], 7, 2, 2, seed=4)
+    with pytest.raises(ValueError, match="x_conv2 expects 6 input channels"):
+        vsa(batch)
+
+
+def test_voxel_centers_of_a_downsampled_level():
+    centres = voxel_centers(torch.tensor([[1, 2, 3]]), 2, VOXEL_SIZE, POINT_CLOUD_RANGE)
+    assert torch.allclose(centres, torch.tensor([[0.0 + 3.5 * 0.2, -4.0 + 2.5 * 0.2, -2.0 + 1.5 * 0.4]]))
+
+
+def point_head(num_class: int) -> PointHeadSimple:
+    cfg = {"NAME": "PointHeadSimple", "CLS_FC": [8], "CLASS_AGNOSTIC": num_class == 1,
+           "USE_POINT_FEATURES_BEFORE_FUSION": True, "TARGET_CONFIG": {"GT_EXTRA_WIDTH": [0.2, 0.2, 0.2]},
+           "LOSS_CONFIG": {"LOSS_REG": "smooth-l1", "LOSS_WEIGHTS": {"point_cls_weight": 1.0}}}
+    return PointHeadSimple(num_class=num_class, input_channels=6, model_cfg=cfg)
+
+
+def test_point_head_targets_foreground_ignore_margin_and_background():
+    # sample 0: a 2 x 1 x 1 box rotated by 90 deg (so 1 m along x, 2 m along y) at the origin, class 2;
+    # sample 1: one class-1 box at x = 5; padding row (class 0) must be skipped
+    gt = torch.tensor([
+        [[0.0, 0.0, 0.0, 2.0, 1.0, 1.0, math.pi / 2, 2], [0, 0, 0, 0, 0, 0, 0, 0]],
+        [[5.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0, 1], [0, 0, 0, 0, 0, 0, 0, 0]],
+    ])
+    coords = torch.tensor([
+        [0, 0.0, 0.9, 0.0],    # inside (along the rotated long side)
+        [0, 0.9, 0.0, 0.0],    # outside: x half-extent is 0.5 after rotation
+        [0, 0.55, 0.0, 0.0],   # in the 0.1 m enlarged margin -> ignored
+        [0, 0.0, 0.0, 0.58],   # in the z margin -> ignored
+        [1, 5.0, 0.0, 0.0],    # inside the sample-1 box
+        [1, 0.0, 0.9, 0.0],    # would be inside sample 0's box, but belongs to sample 1
+    ])
+    assert point_head(1).assign_targets(coords, gt).tolist() == [1, 0, -1, -1, 1, 0]
+    assert point_head(3).assign_targets(coords, gt).tolist() == [2, 0, -1, -1, 1, 0]
+
+
+def test_point_head_focal_loss_and_scores():
+    torch.manual_seed(0)
+    head = point_head(1)
+    feats = torch.randn(6, 6, requires_grad=True)
+    batch = {"point_features_before_fusion": feats, "point_features": torch.randn(6, 3),
+             "point_coords": torch.tensor([[0, 0.0, 0, 0]] * 3 + [[0, 9.0, 0, 0]] * 3),
+             "gt_boxes": torch.tensor([[[0.0, 0, 0, 1, 1, 1, 0, 1]]])}
+    head.train()
+    batch = head(batch)
+    loss, tb = head.get_loss()
+    logits = head.forward_ret_dict["point_cls_preds"].view(-1)
+    assert torch.allclose(batch["point_cls_scores"], torch.sigmoid(logits))
+    p = torch.sigmoid(logits)
+    target = torch.tensor([1.0, 1, 1, 0, 0, 0])
+    alpha = torch.where(target > 0, 0.25, 0.75)
+    p_wrong = torch.where(target > 0, 1 - p, p)
+    expected = (alpha * p_wrong ** 2 * F.binary_cross_entropy_with_logits(logits, target, reduction="none")).sum() / 3
+    assert torch.allclose(loss, expected, atol=1e-6)
+    assert tb["point_pos_num"] == 3.0
+    loss.backward()
+    assert feats.grad.abs().sum() > 0
