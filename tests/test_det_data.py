@@ -209,3 +209,24 @@ def test_subsets_of_a_platform_and_frames_without_boxes(tmp_path):
     assert full["num_scans"] == 10 and full["num_boxes"] == 1
     with pytest.raises(InputError, match="holds no Car box"):
         make_det_subset(tmp_path / "index.json", "drone", 0.2)
+
+
+def test_cli_refuses_a_subset_without_boxes_in_one_line(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from omnilidar.data.index import build_index, write_index
+
+    rng = np.random.default_rng(5)
+    pts = np.concatenate([rng.uniform(0, 40, (100, 2)), rng.uniform(-10, -8, (100, 1)), rng.uniform(0, 1, (100, 1))], 1)
+    infos = write_platform(tmp_path, "Drone", [(pts, np.zeros((0, 7)), [])] * 3)
+    pi3det.write_infos(tmp_path / "drone" / "drone_infos_train.pkl", infos)
+    write_index(build_index("pi3det", tmp_path), tmp_path / "index.json")
+    out = tmp_path / "run.pt"
+    res = subprocess.run([sys.executable, "-m", "omnilidar.cli", "train-detector", "--detector", "voxel_rcnn",
+                          "--platform", "drone", "--index", str(tmp_path / "index.json"), "--percent", "100",
+                          "--settings", json.dumps({}), "--out", str(out)], capture_output=True, text=True)
+    assert res.returncode == 2 and not out.exists()
+    lines = [line for line in res.stderr.splitlines() if line.strip() and not line.startswith("$ omnilidar")]
+    assert len(lines) == 1 and "index.json" in lines[0] and "holds no Car box" in lines[0]
