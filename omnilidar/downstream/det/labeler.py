@@ -18,10 +18,10 @@ def import_labeler(det: dict, detector: str, platform: str, model_yaml: str, che
                    out: str | Path) -> dict:
     from omnilidar.downstream.det.checkpoints import load_openpcdet_state, save_payload
     from omnilidar.downstream.det.data_config import platform_config
-    from omnilidar.downstream.det.model_config import build, model_config, read_model_yaml
+    from omnilidar.downstream.det.model_config import build, model_config
 
     cfg = platform_config(det, platform)
-    model = model_config(det, detector, cfg, read_model_yaml(model_yaml))
+    model = model_config(det, detector, cfg, model_yaml)
     state = load_openpcdet_state(checkpoint)
     net = build(model, cfg)
     missing, unexpected = [], []

@@ -4,7 +4,8 @@
 (``config``: a file whose ``MODEL`` section, or whole content, is the model
 config, e.g. ``config/detectors/voxel_rcnn.yaml``) and ``overrides`` merged
 into it key by key (dicts recursively, everything else replaced), which is how
-the CPU default shrinks the paper's widths. The platform's anchors always
+the CPU default shrinks the paper's widths: either a mapping or the name of a
+top-level section of the same yaml (``CPU_SMALL``). The platform's anchors always
 replace ``DENSE_HEAD.ANCHOR_GENERATOR_CONFIG``, so one file serves Drone
 (Car) and Quadruped (Car, Pedestrian).
 """
@@ -32,7 +33,9 @@ def merge(base: dict, overrides: dict) -> dict:
     return out
 
 
-def read_model_yaml(path: str | Path) -> dict:
+def read_model_yaml(path: str | Path, section: str = "MODEL") -> dict:
+    """The ``MODEL`` section of an OpenPCDet-style yaml (or the whole file when it has none),
+    or another top-level ``section`` of it (an overrides preset such as ``CPU_SMALL``)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "detector config not found (downstream.det.detectors.<name>.config)")
@@ -42,18 +45,26 @@ def read_model_yaml(path: str | Path) -> dict:
         raise InputError(path, f"not valid YAML: {str(err).splitlines()[0]}") from None
     if not isinstance(doc, dict):
         raise InputError(path, "detector config must be a mapping (an OpenPCDet cfg or its MODEL section)")
+    if section != "MODEL":
+        if not isinstance(doc.get(section), dict):
+            raise InputError(path, f"has no overrides section {section!r} (downstream.det.detectors.<name>.overrides)")
+        return doc[section]
     model = doc.get("MODEL", doc)
     if not isinstance(model, dict) or "NAME" not in model:
         raise InputError(path, "detector config has no MODEL.NAME")
     return model
 
 
-def model_config(settings: dict, detector: str, cfg: PlatformConfig, base: dict | None = None) -> dict:
-    """The resolved MODEL section of ``detector`` for one platform."""
+def model_config(settings: dict, detector: str, cfg: PlatformConfig, path: str | Path | None = None) -> dict:
+    """The resolved MODEL section of ``detector`` for one platform (from ``path``, default its config)."""
     if detector not in DETECTORS:
         raise InputError(None, f"unknown detector {detector!r}; known: {', '.join(DETECTORS)}")
     spec = settings["detectors"][detector]
-    model = merge(base if base is not None else read_model_yaml(spec["config"]), spec.get("overrides") or {})
+    path = path or spec["config"]
+    overrides = spec.get("overrides") or {}
+    if isinstance(overrides, str):
+        overrides = read_model_yaml(path, overrides)
+    model = merge(read_model_yaml(path), overrides)
     model.setdefault("DENSE_HEAD", {})["ANCHOR_GENERATOR_CONFIG"] = anchor_generator_config(cfg)
     return model
 

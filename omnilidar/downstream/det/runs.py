@@ -33,11 +33,11 @@ def run_training(det: dict, schedule: dict, detector: str, platform: str, model_
                  with_mixing: bool) -> dict:
     """Train ``detector`` on one platform's frames with the section's data keys and ``schedule``."""
     from omnilidar.downstream.det.data_config import platform_config
-    from omnilidar.downstream.det.model_config import model_config, read_model_yaml
+    from omnilidar.downstream.det.model_config import model_config
     from omnilidar.downstream.det.training import train_detector
 
     cfg = platform_config(det, platform)
-    model = model_config(det, detector, cfg, read_model_yaml(model_yaml) if model_yaml else None)
+    model = model_config(det, detector, cfg, model_yaml)
     training = {"device": det["device"], "voxels": det["voxels"], "schedule": schedule,
                 "augmentation": det["augmentation"], "data": cfg.as_dict()}
     if with_mixing:
