@@ -20,10 +20,11 @@ import math
 
 import torch
 
-# Vertex capacity after each clipping step: exact arithmetic needs 5, 6, 7, 8;
-# the slack absorbs near-duplicate vertices that rounding can create where
-# edges (nearly) coincide.
-_CAPACITIES = (8, 12, 16, 16)
+# Vertex capacity after each clipping step: exact arithmetic needs 5, 6, 7, 8
+# (one more per step); the slack is for near-duplicate vertices that rounding
+# could create where edges (nearly) coincide. Adversarial nearly parallel and
+# edge-sharing pairs at 1e3 m never went past 5, 6, 7, 8.
+_CAPACITIES = (6, 8, 10, 12)
 # Clipped pairs per vectorised batch: cache-sized on CPU, large on GPUs.
 _PAIR_CHUNK = {"cpu": 1 << 13}
 _PAIR_CHUNK_DEFAULT = 1 << 18
@@ -137,7 +138,8 @@ def _candidate_pairs(ra: torch.Tensor, rb: torch.Tensor, upper_only: bool = Fals
     for r0 in range(0, n, rows):
         sl = slice(r0, min(n, r0 + rows))
         reach = rad_a[sl, None] + rad_b[None, :]
-        near = torch.cdist(ra[sl, :2], rb[:, :2]) - reach <= 1e-9 * (1.0 + reach)
+        dist = torch.cdist(ra[sl, :2], rb[:, :2], compute_mode="donot_use_mm_for_euclid_dist")
+        near = dist - reach <= 1e-9 * (1.0 + reach)
         if upper_only:
             near &= cols[None, :] > torch.arange(sl.start, sl.stop, device=ra.device)[:, None]
         ia, ib = torch.nonzero(near, as_tuple=True)
