@@ -1,0 +1,210 @@
+"""Point sampling and neighbourhood grouping with OpenPCDet's semantics
+(pcdet.ops.pointnet2.pointnet2_stack), in plain PyTorch on any device.
+
+"Stack" layout: the points of all samples are concatenated, (N1 + N2 + ..., 3),
+with per-sample counts ``*_batch_cnt`` (B,). Ball-query indices are local to
+their sample (0 .. N_b - 1); voxel-query indices are whatever the voxel -> point
+map holds (global there). Empty neighbourhoods come back as index 0 with
+``empty_ball_mask`` set, exactly as the CUDA ops return them.
+
+Queries are vectorised over centres and candidates in chunks of at most
+``_CHUNK`` pairs, so memory stays bounded for tens of thousands of centres.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+_CHUNK = 1 << 22  # (centres x candidates) pairs per vectorised batch
+
+
+def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
+    """(B, npoint) long indices of iterative farthest point sampling of (B, N, 3).
+
+    Starts at index 0 and each step takes the point farthest (squared distance,
+    computed in the input dtype like the CUDA kernel) from those chosen so far;
+    ties go to the lowest index. Once every point is chosen the remaining
+    picks repeat index 0, as the CUDA op does.
+    """
+    if xyz.ndim != 3 or xyz.shape[2] != 3:
+        raise ValueError(f"xyz must be (B, N, 3), got {tuple(xyz.shape)}")
+    b, n, _ = xyz.shape
+    out = torch.zeros(b, npoint, dtype=torch.long, device=xyz.device)
+    if n == 0 or npoint <= 1:
+        return out
+    x, y, z = (xyz[..., k].contiguous() for k in range(3))
+    nearest = torch.full((b, n), 1e10, dtype=xyz.dtype, device=xyz.device)
+    rows = torch.arange(b, device=xyz.device)
+    last = torch.zeros(b, dtype=torch.long, device=xyz.device)
+    for j in range(1, npoint):
+        px, py, pz = x[rows, last, None], y[rows, last, None], z[rows, last, None]
+        d = (x - px) * (x - px) + (y - py) * (y - py) + (z - pz) * (z - pz)
+        nearest = torch.minimum(nearest, d)
+        last = torch.argmax(nearest, dim=1)
+        out[:, j] = last
+    return out
+
+
+def _first_hits(hit: torch.Tensor, values: torch.Tensor, nsample: int):
+    """Per row of ``hit`` (R, K) bool: the ``values`` (R, K) at the first
+    ``nsample`` hits in column order, padded with the first hit's value.
+    Returns (idx (R, nsample) long, empty (R,) bool); empty rows give 0."""
+    k = hit.shape[1]
+    cols = torch.arange(k, device=hit.device)
+    key = torch.where(hit, cols, k)
+    take = min(nsample, k)
+    first = torch.topk(key, take, dim=1, largest=False, sorted=True).values if k else key[:, :0]
+    if take < nsample:  # fewer candidates than samples: pad the columns
+        first = torch.cat([first, first.new_full((len(first), nsample - take), k)], dim=1)
+    found = first < k
+    empty = ~found[:, 0] if nsample else torch.ones(len(hit), dtype=torch.bool, device=hit.device)
+    picked = torch.gather(values, 1, first.clamp(max=max(k - 1, 0))) if k else first.new_zeros(first.shape)
+    picked = torch.where(found, picked, picked[:, :1])
+    return torch.where(empty[:, None], torch.zeros_like(picked), picked), empty
+
+
+def _batch_starts(counts: torch.Tensor) -> list[int]:
+    c = counts.tolist()
+    return [sum(c[:i]) for i in range(len(c) + 1)]
+
+
+def ball_query(radius: float, nsample: int, xyz: torch.Tensor, xyz_batch_cnt: torch.Tensor,
+               new_xyz: torch.Tensor, new_xyz_batch_cnt: torch.Tensor):
+    """Stack ball query: for each centre of ``new_xyz`` (M, 3), the first ``nsample``
+    points of its own sample, in index order, with squared distance < radius^2.
+
+    Returns (idx (M, nsample) long, local to the sample; empty_ball_mask (M,) bool).
+    A ball with fewer points repeats its first one; an empty ball gives zeros
+    and sets the mask.
+    """
+    if len(xyz_batch_cnt) != len(new_xyz_batch_cnt):
+        raise ValueError("xyz_batch_cnt and new_xyz_batch_cnt must have one count per sample")
+    p_start, c_start = _batch_starts(xyz_batch_cnt), _batch_starts(new_xyz_batch_cnt)
+    if p_start[-1] != len(xyz) or c_start[-1] != len(new_xyz):
+        raise ValueError(f"batch counts sum to {p_start[-1]} points / {c_start[-1]} centres, "
+                         f"got {len(xyz)} / {len(new_xyz)}")
+    idx = torch.zeros(len(new_xyz), nsample, dtype=torch.long, device=new_xyz.device)
+    empty = torch.ones(len(new_xyz), dtype=torch.bool, device=new_xyz.device)
+    r2 = radius * radius
+    for b in range(len(p_start) - 1):
+        pts = xyz[p_start[b]:p_start[b + 1]]
+        n = len(pts)
+        rows = max(1, _CHUNK // max(n, 1))
+        local = torch.arange(n, device=xyz.device)
+        for c0 in range(c_start[b], c_start[b + 1], rows):
+            c1 = min(c_start[b + 1], c0 + rows)
+            ctr = new_xyz[c0:c1]
+            d2 = ((ctr[:, None, 0] - pts[None, :, 0]) ** 2 + (ctr[:, None, 1] - pts[None, :, 1]) ** 2
+                  + (ctr[:, None, 2] - pts[None, :, 2]) ** 2)
+            idx[c0:c1], empty[c0:c1] = _first_hits(d2 < r2, local.expand(c1 - c0, n), nsample)
+    return idx, empty
+
+
+def grouping_operation(features: torch.Tensor, features_batch_cnt: torch.Tensor,
+                       idx: torch.Tensor, idx_batch_cnt: torch.Tensor) -> torch.Tensor:
+    """(M, C, nsample) features (N, C) gathered at sample-local ``idx`` (M, nsample);
+    differentiable (gradients add up at repeated indices)."""
+    starts = torch.cumsum(features_batch_cnt.to(idx.device), 0) - features_batch_cnt.to(idx.device)
+    owner = torch.repeat_interleave(torch.arange(len(idx_batch_cnt), device=idx.device),
+                                    idx_batch_cnt.to(idx.device), output_size=len(idx))
+    flat = idx.long() + starts[owner][:, None]
+    return features[flat].permute(0, 2, 1).contiguous()
+
+
+def query_and_group(radius: float, nsample: int, xyz: torch.Tensor, xyz_batch_cnt: torch.Tensor,
+                    new_xyz: torch.Tensor, new_xyz_batch_cnt: torch.Tensor,
+                    features: torch.Tensor | None = None, use_xyz: bool = True):
+    """Ball query + grouping: (new_features (M, 3 + C, nsample), idx, empty_ball_mask).
+
+    The first 3 channels are the neighbours' xyz relative to the centre (when
+    ``use_xyz``), then their features; empty balls are all zero.
+    """
+    idx, empty = ball_query(radius, nsample, xyz, xyz_batch_cnt, new_xyz, new_xyz_batch_cnt)
+    grouped_xyz = grouping_operation(xyz, xyz_batch_cnt, idx, new_xyz_batch_cnt) - new_xyz[..., None]
+    grouped_xyz = torch.where(empty[:, None, None], 0.0, grouped_xyz)
+    if features is None:
+        if not use_xyz:
+            raise ValueError("query_and_group needs features or use_xyz")
+        return grouped_xyz, idx, empty
+    grouped = grouping_operation(features, xyz_batch_cnt, idx, new_xyz_batch_cnt)
+    grouped = torch.where(empty[:, None, None], 0.0, grouped)
+    return (torch.cat([grouped_xyz, grouped], dim=1) if use_xyz else grouped), idx, empty
+
+
+class QueryAndGroup(nn.Module):
+    """OpenPCDet's pointnet2_stack QueryAndGroup (no parameters):
+    forward(...) -> (new_features (M, 3 + C, nsample), idx)."""
+
+    def __init__(self, radius: float, nsample: int, use_xyz: bool = True):
+        super().__init__()
+        self.radius, self.nsample, self.use_xyz = radius, nsample, use_xyz
+
+    def forward(self, xyz, xyz_batch_cnt, new_xyz, new_xyz_batch_cnt, features=None):
+        new_features, idx, _ = query_and_group(self.radius, self.nsample, xyz, xyz_batch_cnt,
+                                               new_xyz, new_xyz_batch_cnt, features, self.use_xyz)
+        return new_features, idx
+
+
+def voxel_query(max_range, radius: float, nsample: int, xyz: torch.Tensor, new_xyz: torch.Tensor,
+                new_coords: torch.Tensor, point_indices: torch.Tensor):
+    """Voxel R-CNN's voxel query: neighbours of each centre among the voxels around
+    its own voxel.
+
+    ``max_range`` (z, y, x) half-widths of the voxel window; ``new_coords`` (M, 4)
+    [batch, z, y, x] of each centre's voxel; ``point_indices`` (B, Z, Y, X) the
+    index into ``xyz`` of each voxel's point, -1 where empty. Voxels are scanned
+    z, then y, then x from -range to +range; a voxel counts when its point lies
+    within ``radius`` (squared distance <= radius^2). Returns (idx (M, nsample)
+    long: the first ``nsample`` such point indices, padded with the first one;
+    empty_ball_mask (M,)), empty windows giving zeros.
+    """
+    zr, yr, xr = (int(r) for r in max_range)
+    _, nz, ny, nx = point_indices.shape
+    dev = new_xyz.device
+    grid = torch.meshgrid(torch.arange(-zr, zr + 1, device=dev), torch.arange(-yr, yr + 1, device=dev),
+                          torch.arange(-xr, xr + 1, device=dev), indexing="ij")
+    offsets = torch.stack([g.reshape(-1) for g in grid], dim=1)  # (K, 3) in scan order
+    k = len(offsets)
+    flat_map = point_indices.reshape(-1).long()
+    size = torch.tensor([nz, ny, nx], device=dev)
+    idx = torch.zeros(len(new_xyz), nsample, dtype=torch.long, device=dev)
+    empty = torch.ones(len(new_xyz), dtype=torch.bool, device=dev)
+    r2 = radius * radius
+    rows = max(1, _CHUNK // k)
+    for c0 in range(0, len(new_xyz), rows):
+        c1 = min(len(new_xyz), c0 + rows)
+        coords = new_coords[c0:c1].long()
+        cell = coords[:, None, 1:] + offsets[None]  # (R, K, 3) z y x
+        inside = ((cell >= 0) & (cell < size)).all(dim=2)
+        cell = torch.where(inside[..., None], cell, 0)
+        lin = ((coords[:, None, 0] * nz + cell[..., 0]) * ny + cell[..., 1]) * nx + cell[..., 2]
+        neighbour = torch.where(inside, flat_map[lin], -1)
+        pts = xyz[neighbour.clamp(min=0)]
+        ctr = new_xyz[c0:c1, None]
+        d2 = ((pts[..., 0] - ctr[..., 0]) ** 2 + (pts[..., 1] - ctr[..., 1]) ** 2
+              + (pts[..., 2] - ctr[..., 2]) ** 2)
+        idx[c0:c1], empty[c0:c1] = _first_hits((neighbour >= 0) & (d2 <= r2), neighbour, nsample)
+    return idx, empty
+
+
+class VoxelQueryAndGrouping(nn.Module):
+    """OpenPCDet's voxel_query_utils.VoxelQueryAndGrouping (no parameters):
+    forward(...) -> (grouped_features (M, C, nsample), grouped_xyz (M, 3, nsample),
+    empty_ball_mask). ``voxel2point_indices`` holds global (stacked) point indices;
+    they are made sample-local per centre before grouping; grouped_xyz is absolute."""
+
+    def __init__(self, max_range, radius: float, nsample: int):
+        super().__init__()
+        self.max_range, self.radius, self.nsample = max_range, radius, nsample
+
+    def forward(self, new_coords, xyz, xyz_batch_cnt, new_xyz, new_xyz_batch_cnt, features, voxel2point_indices):
+        idx, empty = voxel_query(self.max_range, self.radius, self.nsample, xyz, new_xyz,
+                                 new_coords, voxel2point_indices)
+        starts = torch.cumsum(xyz_batch_cnt.to(idx.device), 0) - xyz_batch_cnt.to(idx.device)
+        owner = torch.repeat_interleave(torch.arange(len(new_xyz_batch_cnt), device=idx.device),
+                                        new_xyz_batch_cnt.to(idx.device), output_size=len(idx))
+        idx = torch.where(empty[:, None], 0, idx - starts[owner][:, None])
+        grouped_xyz = grouping_operation(xyz, xyz_batch_cnt, idx, new_xyz_batch_cnt)
+        grouped_features = grouping_operation(features, xyz_batch_cnt, idx, new_xyz_batch_cnt)
+        return grouped_features, grouped_xyz, empty
