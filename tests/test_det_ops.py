@@ -12,8 +12,11 @@ from hypothesis import strategies as st
 
 from omnilidar.downstream.det.ops import iou
 
-shapely = pytest.importorskip("shapely")
-from shapely.geometry import Polygon  # noqa: E402
+try:  # test-only reference geometry (the "test" extra)
+    from shapely.geometry import Polygon
+except ImportError:  # pragma: no cover - e.g. on a bare GPU machine
+    Polygon = None
+needs_shapely = pytest.mark.skipif(Polygon is None, reason="shapely (test extra) is not installed")
 
 
 def _random_boxes(gen: torch.Generator, n: int, spread: float = 3.0) -> torch.Tensor:
@@ -38,6 +41,7 @@ def _shapely_overlap_bev(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
 # ---------------------------------------------------------------- IoU
 
 
+@needs_shapely
 def test_bev_overlap_matches_shapely():
     gen = torch.Generator().manual_seed(0)
     a, b = _random_boxes(gen, 40), _random_boxes(gen, 50)
@@ -49,6 +53,7 @@ def test_bev_overlap_matches_shapely():
     np.testing.assert_allclose(iou.boxes_iou_bev(a, b).numpy(), want / union.numpy(), atol=1e-9)
 
 
+@needs_shapely
 def test_iou3d_is_bev_overlap_times_height_overlap():
     gen = torch.Generator().manual_seed(1)
     a, b = _random_boxes(gen, 30), _random_boxes(gen, 20)
@@ -63,6 +68,7 @@ def test_iou3d_is_bev_overlap_times_height_overlap():
     assert (want > 0).any()
 
 
+@needs_shapely
 def test_rotated_overlap_2d_turns_clockwise_like_kitti_eval():
     gen = torch.Generator().manual_seed(2)
     a = torch.cat([torch.rand(25, 2, generator=gen) * 4, 0.5 + 3 * torch.rand(25, 2, generator=gen),
@@ -116,6 +122,7 @@ def test_half_turns_and_quarter_turned_squares_are_the_same_rectangle(dtype):
     torch.testing.assert_close(iou.boxes_iou3d(square, square), torch.ones(2, 2, dtype=dtype), atol=tol, rtol=0)
 
 
+@needs_shapely
 def test_nearly_parallel_boxes_far_from_origin_match_the_same_pair_at_origin():
     near = torch.tensor([[0.0, 0.0, 0.0, 4.2, 1.8, 1.5, 0.0], [0.05, 0.02, 0.0, 4.2, 1.8, 1.5, 1e-5],
                          [0.0, 1.8, 0.0, 4.2, 1.8, 1.5, 0.0]], dtype=torch.float64)
@@ -196,6 +203,34 @@ def test_iou_properties(rows_a, rows_b):
     b_tall = b.clone()
     b_tall[:, 2], b_tall[:, 5] = 0.0, 100.0
     assert (iou.boxes_iou3d(a, b_tall) <= iou.boxes_iou_bev(a, b_tall) + 1e-12).all()
+
+
+
+_near = st.floats(-1e-3, 1e-3, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.floats(-math.pi, math.pi, **_finite), st.floats(0.3, 5, **_finite), st.floats(0.3, 3, **_finite),
+       st.sampled_from([0.0, 0.5, 1.0, 2.0]), st.sampled_from([0.0, 1.0]), _near, _near, _near)
+def test_nearly_parallel_and_edge_sharing_pairs_are_shift_invariant(heading, dx, dy, along, across, eps_h, eps_x, eps_y):
+    """b is a slid along its own axes by a fraction of its size (shared edges at
+    1.0), nudged by up to 1e-3; the IoU must not depend on where the pair sits."""
+    c, s_ = math.cos(heading), math.sin(heading)
+    sx, sy = along * dx + eps_x, across * dy + eps_y
+    a = [0.0, 0.0, 0.0, dx, dy, 1.0, heading]
+    b = [c * sx - s_ * sy, s_ * sx + c * sy, 0.0, dx, dy, 1.0, heading + eps_h]
+    near = torch.tensor([a, b], dtype=torch.float64)
+    far = near.clone()
+    far[:, 0] += 1e4
+    far[:, 1] -= 3e4
+    want = iou.boxes_iou_bev(near, near)
+    got = iou.boxes_iou_bev(far, far)
+    assert torch.isfinite(got).all() and ((got >= 0) & (got <= 1 + 1e-12)).all()
+    torch.testing.assert_close(got, want, atol=1e-9, rtol=0)
+    torch.testing.assert_close(torch.diagonal(got), torch.ones(2, dtype=torch.float64), atol=1e-12, rtol=0)
+    if Polygon is not None:
+        inter = _shapely_overlap_bev(near, near)[0, 1]
+        assert abs(float(iou.boxes_overlap_bev(near, near)[0, 1]) - inter) < 1e-9
 
 
 # ---------------------------------------------------------------- NMS
@@ -415,3 +450,33 @@ def test_voxel_query_matches_the_scan_order_of_voxel_rcnn():
     flat = torch.where(empty[:, None], start, idx)  # empty balls group local point 0
     assert torch.equal(g_feats, feats[flat].permute(0, 2, 1))
     assert torch.equal(g_xyz, xyz[flat].permute(0, 2, 1))
+
+
+
+# ---------------------------------------------------------------- devices
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_every_operator_gives_the_same_answer_on_cuda():
+    gen = torch.Generator().manual_seed(10)
+    a, b = _random_boxes(gen, 200, 8.0).float(), _random_boxes(gen, 150, 8.0).float()
+    cuda = torch.device("cuda")
+    for fn in (iou.boxes_iou_bev, iou.boxes_iou3d, iou.boxes_overlap_bev, iou.boxes_iou_bev_nearest):
+        got = fn(a.to(cuda), b.to(cuda))
+        assert got.device.type == "cuda"
+        torch.testing.assert_close(got.cpu(), fn(a, b), atol=1e-6, rtol=0)
+    rects = a[:, [0, 1, 3, 4, 6]]
+    torch.testing.assert_close(iou.rotated_overlap_2d(rects.to(cuda), rects.to(cuda)).cpu(),
+                               iou.rotated_overlap_2d(rects, rects), atol=1e-5, rtol=0)
+    scores = torch.rand(200, generator=gen)
+    assert torch.equal(nms.nms_rotated(a.to(cuda), scores.to(cuda), 0.2, 150, 60).cpu(),
+                       nms.nms_rotated(a, scores, 0.2, 150, 60))
+    pts = (torch.rand(5000, 3, generator=gen) - 0.5) * 16
+    assert torch.equal(det_points.points_in_boxes(pts.to(cuda), a.to(cuda)).cpu(), det_points.points_in_boxes(pts, a))
+    xyz = torch.rand(2, 700, 3, generator=gen) * 10
+    assert torch.equal(sampling.farthest_point_sample(xyz.to(cuda), 64).cpu(), sampling.farthest_point_sample(xyz, 64))
+    flat, cnt, centres, ccnt = xyz.reshape(-1, 3), torch.tensor([700, 700]), xyz[:, :50].reshape(-1, 3), torch.tensor([50, 50])
+    want = sampling.query_and_group(0.8, 16, flat, cnt, centres, ccnt, flat * 2)
+    got = sampling.query_and_group(0.8, 16, flat.to(cuda), cnt.to(cuda), centres.to(cuda), ccnt.to(cuda), flat.to(cuda) * 2)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g.cpu(), w)

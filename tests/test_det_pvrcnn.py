@@ -15,6 +15,7 @@ from omnilidar.downstream.det.models.pfe.voxel_set_abstraction import (
     voxel_centers,
 )
 from omnilidar.downstream.det.models.pointnet2_stack import StackSAModuleMSG
+from omnilidar.downstream.det.models.roi_heads.roi_grid import roi_grid_points
 from omnilidar.sparse.tensor import SparseTensor
 
 POINT_CLOUD_RANGE = [0.0, -4.0, -2.0, 8.0, 4.0, 2.0]
@@ -201,3 +202,16 @@ def test_point_head_focal_loss_and_scores():
     assert tb["point_pos_num"] == 3.0
     loss.backward()
     assert feats.grad.abs().sum() > 0
+
+
+def test_roi_grid_points_cell_centres_rotated_with_the_box():
+    rois = torch.tensor([[1.0, 2.0, 3.0, 4.0, 2.0, 2.0, 0.0], [0.0, 0.0, 0.0, 4.0, 2.0, 2.0, math.pi / 2]])
+    grid = roi_grid_points(rois, 2)
+    assert grid.shape == (2, 8, 3)
+    # x-major order: (ix, iy, iz) = (0,0,0), (0,0,1), (0,1,0), ... ; cell centres at +-size/4
+    assert torch.allclose(grid[0, 0], torch.tensor([0.0, 1.5, 2.5]))
+    assert torch.allclose(grid[0, 1], torch.tensor([0.0, 1.5, 3.5]))
+    assert torch.allclose(grid[0, 2], torch.tensor([0.0, 2.5, 2.5]))
+    assert torch.allclose(grid[0, 4], torch.tensor([2.0, 1.5, 2.5]))
+    # heading 90 deg: local +x (length) points along world +y
+    assert torch.allclose(grid[1, 4], torch.tensor([0.5, 1.0, -0.5]), atol=1e-6)

@@ -12,41 +12,9 @@ its checkpoints load strictly.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
-from omnilidar.downstream.det.ops.sampling import ball_query, grouping_operation
-
-
-class QueryAndGroup(nn.Module):
-    """Ball query around each centre, then gather relative xyz and features.
-
-    Returns ``(M, 3 + C, nsample)`` (``use_xyz``) and the neighbour indices; a
-    centre with no neighbour inside the radius gets all-zero columns.
-    """
-
-    def __init__(self, radius: float, nsample: int, use_xyz: bool = True):
-        super().__init__()
-        self.radius, self.nsample, self.use_xyz = float(radius), int(nsample), use_xyz
-
-    def forward(self, xyz, xyz_batch_cnt, new_xyz, new_xyz_batch_cnt, features=None):
-        if xyz.shape[0] != int(xyz_batch_cnt.sum()) or new_xyz.shape[0] != int(new_xyz_batch_cnt.sum()):
-            raise ValueError(
-                f"batch counts do not match the stacked rows: xyz {xyz.shape[0]} vs {xyz_batch_cnt.tolist()}, "
-                f"new_xyz {new_xyz.shape[0]} vs {new_xyz_batch_cnt.tolist()}"
-            )
-        idx, empty = ball_query(self.radius, self.nsample, xyz, xyz_batch_cnt, new_xyz, new_xyz_batch_cnt)
-        grouped_xyz = grouping_operation(xyz, xyz_batch_cnt, idx, new_xyz_batch_cnt) - new_xyz.unsqueeze(-1)
-        keep = (~empty).to(grouped_xyz.dtype).view(-1, 1, 1)
-        grouped_xyz = grouped_xyz * keep
-        if features is None:
-            if not self.use_xyz:
-                raise ValueError("QueryAndGroup needs features when use_xyz is False")
-            return grouped_xyz, idx
-        grouped = grouping_operation(features, xyz_batch_cnt, idx, new_xyz_batch_cnt) * keep
-        if self.use_xyz:
-            grouped = torch.cat([grouped_xyz, grouped], dim=1)
-        return grouped, idx
+from omnilidar.downstream.det.ops.sampling import QueryAndGroup
 
 
 def shared_mlp(channels: list[int]) -> nn.Sequential:
