@@ -292,6 +292,7 @@ def test_class_agnostic_and_multi_class_nms_follow_openpcdet():
 # ---------------------------------------------------------------- points in boxes
 
 from omnilidar.downstream.det.ops import points as det_points  # noqa: E402
+from omnilidar.lidar.boxes import box_corners  # noqa: E402
 
 
 def test_points_in_boxes_match_a_per_pair_loop():
@@ -323,6 +324,32 @@ def test_points_on_faces_count_and_empty_inputs():
     assert det_points.points_in_boxes(pts, box[:0]).tolist() == [-1] * 5
     with pytest.raises(ValueError, match="boxes must be"):
         det_points.points_in_boxes(pts, box[:, :6])
+
+
+def _dense_inside(pts: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    ox = pts[:, None, 0] - boxes[None, :, 0]
+    oy = pts[:, None, 1] - boxes[None, :, 1]
+    c, s_ = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    return ((np.abs(ox * c + oy * s_) <= boxes[:, 3] / 2) & (np.abs(oy * c - ox * s_) <= boxes[:, 4] / 2)
+            & (np.abs(pts[:, None, 2] - boxes[None, :, 2]) <= boxes[:, 5] / 2))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 1e4, -3e4]), st.integers(1, 60), st.floats(0.0, 1.0))
+def test_points_in_boxes_never_miss_a_point(seed, offset, n_boxes, zero_fraction):
+    """Sorted-strip candidate search against a dense float64 test, with points on
+    faces and corners, zero-size boxes, boxes away from every point, far offsets."""
+    rng = np.random.default_rng(seed)
+    boxes = np.column_stack([rng.uniform(-12, 12, (n_boxes, 3)), rng.uniform(0.1, 6, (n_boxes, 3)),
+                             rng.uniform(-4, 4, n_boxes)])
+    boxes[rng.random(n_boxes) < zero_fraction * 0.3, 3:6] = 0.0
+    boxes[rng.random(n_boxes) < 0.1, 0] += 100.0  # far from all points
+    corners = np.concatenate([box_corners(boxes[:, :7]).reshape(-1, 3), boxes[:, :3]])
+    pts = np.concatenate([rng.uniform(-15, 15, (400, 3)), corners])
+    pts[:, :2] += offset
+    boxes[:, :2] += offset
+    got = det_points.points_in_boxes_mask(torch.from_numpy(pts), torch.from_numpy(boxes)).numpy()
+    np.testing.assert_array_equal(got, _dense_inside(pts, boxes))
 
 
 # ---------------------------------------------------------------- sampling and grouping
