@@ -233,6 +233,23 @@ def test_nearly_parallel_and_edge_sharing_pairs_are_shift_invariant(heading, dx,
         assert abs(float(iou.boxes_overlap_bev(near, near)[0, 1]) - inter) < 1e-9
 
 
+def test_chunked_evaluation_gives_the_same_answers(monkeypatch):
+    gen = torch.Generator().manual_seed(11)
+    a, b = _random_boxes(gen, 70, 5.0), _random_boxes(gen, 50, 5.0)
+    whole = iou.boxes_iou_bev(a, b)
+    ia, ib, pairs = iou.iou_bev_self_pairs(a)
+    monkeypatch.setattr(iou, "_PREFILTER_CHUNK", {"cpu": 7 * 50})  # 7 rows per block, ragged end
+    monkeypatch.setattr(iou, "_PAIR_CHUNK", {"cpu": 13})
+    assert torch.equal(iou.boxes_iou_bev(a, b), whole)
+    ja, jb, chunked = iou.iou_bev_self_pairs(a)
+    assert (ja < jb).all() and len(set(zip(ja.tolist(), jb.tolist()))) == len(ja)
+    dense = iou.boxes_iou_bev(a, a)
+    torch.testing.assert_close(chunked, dense[ja, jb], atol=1e-12, rtol=0)
+    # Every overlapping pair i < j is listed, chunked or not.
+    assert sorted(zip(ja.tolist(), jb.tolist())) == sorted(zip(ia.tolist(), ib.tolist()))
+    assert {(i, j) for i, j in (torch.triu(dense, 1) > 0).nonzero().tolist()} <= set(zip(ja.tolist(), jb.tolist()))
+
+
 # ---------------------------------------------------------------- NMS
 
 from omnilidar.downstream.det.ops import nms  # noqa: E402
