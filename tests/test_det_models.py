@@ -211,16 +211,20 @@ def test_optimisation_steps_reduce_the_loss():
     steps = 8
     optimizer, schedule = build_optimizer(model, optim_cfg, total_steps=steps)
     batch = _tiny_batch()
-    losses = []
+    losses, rpn_losses = [], []
     for step in range(steps):
         schedule.step(step)
         optimizer.zero_grad()
-        ret, _, _ = model(dict(batch))
+        ret, tb, _ = model(dict(batch))
+        rpn_losses.append(tb["rpn_loss"])
         ret["loss"].backward()
         clip_gradients(model, optim_cfg)
         optimizer.step()
         losses.append(ret["loss"].item())
+    # The RoI losses start late (no foreground RoI before the RPN learns), so the
+    # total is noisier than the RPN's part.
     assert losses[-1] < 0.7 * losses[0], losses
+    assert rpn_losses[-1] < 0.5 * rpn_losses[0], rpn_losses
 
 
 def test_one_cycle_schedule_matches_fastai_shape():
