@@ -278,3 +278,74 @@ def test_bad_model_config_raises_input_error():
         build_detector(broken, 1, ["Car"], TINY_RANGE, TINY_VOXEL, source="det.yaml")
     with pytest.raises(InputError, match="VoxelRCNNX"):
         build_detector({**CONFIGS["small"], "NAME": "VoxelRCNNX"}, 1, ["Car"], TINY_RANGE, TINY_VOXEL)
+
+
+def test_target_assigner_marks_the_matching_anchor_and_encodes_its_box():
+    from omnilidar.downstream.det.models.target_assigner import AxisAlignedTargetAssigner
+
+    head_cfg = copy.deepcopy(CONFIGS["small"]["DENSE_HEAD"])
+    anchors, _ = generate_anchors(TINY_RANGE, head_cfg["ANCHOR_GENERATOR_CONFIG"], [32, 32, 40])
+    flat = anchors[0].reshape(-1, 7)
+    target = flat[11].clone()
+    target[0] += 0.3  # a little off the anchor: still its best match (IoU > 0.6)
+    gt = torch.zeros(1, 3, 8)
+    gt[0, 0, :7], gt[0, 0, 7] = target, 1
+    assigner = AxisAlignedTargetAssigner(head_cfg, ["Car"], ResidualCoder(), torch.Generator().manual_seed(0))
+    out = assigner.assign_targets(anchors, gt)
+    labels = out["box_cls_labels"][0]
+    assert labels[11] == 1 and out["reg_weights"][0, 11] == 1
+    decoded = ResidualCoder().decode_torch(out["box_reg_targets"][0, 11], flat[11])
+    assert torch.allclose(decoded, target, atol=1e-5)
+    # The anchor rotated by 90 degrees at the same place overlaps the box less in
+    # rounded BEV IoU (1.6 x 3.9 crossed with 3.9 x 1.6): background, no regression.
+    other = 10
+    assert flat[other, :2].allclose(flat[11, :2]) and float(flat[other, 6]) == 0.0
+    assert labels[other] == 0 and out["reg_weights"][0, other] == 0
+    assert (labels >= 0).all()  # POS_FRACTION -1: no anchor is left unassigned here
+
+
+def test_proposal_target_layer_samples_foreground_share_and_soft_labels():
+    from omnilidar.downstream.det.models.proposal_target_layer import ProposalTargetLayer
+
+    cfg = dict(CONFIGS["paper"]["ROI_HEAD"]["TARGET_CONFIG"], ROI_PER_IMAGE=20)
+    gt_box = torch.tensor([10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0])
+    rois = gt_box.repeat(40, 1)
+    rois[:10, 0] += torch.linspace(0.0, 0.3, 10)  # foreground (IoU > 0.9)
+    rois[10:20, 0] += 2.0  # IoU 1/3: hard background, soft label
+    rois[20:, 0] += 20.0  # IoU 0: easy background
+    batch = {"batch_size": 1, "rois": rois[None], "roi_scores": torch.rand(1, 40),
+             "roi_labels": torch.ones(1, 40, dtype=torch.long),
+             "gt_boxes": torch.cat([gt_box, torch.tensor([1.0])])[None, None]}
+    out = ProposalTargetLayer(cfg, torch.Generator().manual_seed(0)).forward(batch)
+    ious = out["gt_iou_of_rois"][0]
+    assert out["rois"].shape == (1, 20, 7)
+    assert (ious[:10] > 0.55).all() and (ious[10:] < 0.55).all()  # FG_RATIO 0.5 of 20
+    assert len(set(out["rois"][0, :10, 0].tolist())) == 10  # foreground drawn without replacement
+    hard = (ious[10:] >= 0.1).sum()
+    assert hard == int(10 * 0.8)  # HARD_BG_RATIO
+    labels = out["rcnn_cls_labels"][0]
+    assert (labels[:10] == 1).all()
+    soft = (ious[10:] - 0.25) / 0.5
+    expected = torch.where(ious[10:] < 0.25, torch.zeros_like(soft), soft)
+    assert torch.allclose(labels[10:], expected)
+    assert torch.equal(out["reg_valid_mask"][0], (ious > 0.55).long())
+
+
+def test_roi_targets_are_in_the_roi_frame_with_flipped_heading():
+    from omnilidar.downstream.det.models.roi_head_template import RoIHeadTemplate
+
+    head = RoIHeadTemplate(1, CONFIGS["paper"]["ROI_HEAD"])
+    roi = torch.tensor([5.0, 2.0, -1.0, 4.0, 2.0, 1.5, 0.5])
+    gt = roi.clone()
+    gt[6] += math.pi  # same box facing the other way
+    gt[0] += 1.0
+    batch = {"batch_size": 1, "rois": roi.repeat(4, 1)[None], "roi_scores": torch.ones(1, 4),
+             "roi_labels": torch.ones(1, 4, dtype=torch.long),
+             "gt_boxes": torch.cat([gt, torch.tensor([1.0])])[None, None]}
+    head.proposal_target_layer.cfg = dict(head.proposal_target_layer.cfg, ROI_PER_IMAGE=4)
+    out = head.assign_targets(batch)
+    local = out["gt_of_rois"][0, 0]
+    # A 1 m shift along the lidar x axis seen from a RoI turned by 0.5 rad.
+    assert torch.allclose(local[:3], torch.tensor([math.cos(0.5), -math.sin(0.5), 0.0]), atol=1e-5)
+    assert abs(float(local[6])) < 1e-5  # heading flipped by pi into (-pi/2, pi/2)
+    assert torch.allclose(out["gt_of_rois_src"][0, 0, :7], gt)
