@@ -17,7 +17,19 @@ from omnilidar.downstream.det.models.box_coder import ResidualCoder
 from omnilidar.downstream.det.optim import build_optimizer, clip_gradients
 from omnilidar.errors import InputError
 
-CONFIGS = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
+DOC = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
+
+
+def _merged(base: dict, overrides: dict) -> dict:
+    """Overrides merged key by key (dicts recursively), as the workflow applies CPU_SMALL."""
+    out = copy.deepcopy(base)
+    for key, value in overrides.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else copy.deepcopy(value)
+    return out
+
+
+CONFIGS = {"paper": DOC["MODEL"], "small": _merged(DOC["MODEL"], DOC["CPU_SMALL"])}
 KITTI_RANGE = [0.0, -40.0, -3.0, 70.4, 40.0, 1.0]
 KITTI_VOXEL = [0.05, 0.05, 0.1]
 # Tiny scene: 32 x 32 x 40 voxels, a 4 x 4 BEV map at stride 8.
