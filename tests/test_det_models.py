@@ -14,7 +14,7 @@ import yaml
 from omnilidar.downstream.det.models import build_detector
 from omnilidar.downstream.det.models.anchor_generator import generate_anchors
 from omnilidar.downstream.det.models.box_coder import ResidualCoder
-from omnilidar.downstream.det.optim import build_optimizer, clip_gradients
+from omnilidar.downstream.det.optim import adam_onecycle, build_optimizer, clip_gradients
 from omnilidar.errors import InputError
 
 DOC = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
@@ -252,6 +252,9 @@ def test_one_cycle_schedule_matches_fastai_shape():
     assert group["lr"] == pytest.approx(0.0055)  # half way up the first half-cosine
     schedule.step(99)
     assert 1e-7 < group["lr"] < 1e-5 and group["betas"][0] == pytest.approx(0.95, abs=1e-3)
+    lower_case = adam_onecycle(model, {"lr": 0.01, "moms": [0.95, 0.85], "pct_start": 0.4, "div_factor": 10}, 100)[1]
+    lower_case(20)  # callable with the step, as the training hook uses it
+    assert lower_case.optimizer.param_groups[0]["lr"] == pytest.approx(0.0055)
     with pytest.raises(InputError, match="OPTIMIZER 'sgd'"):
         build_optimizer(model, {"OPTIMIZER": "sgd", "LR": 0.1}, 10)
 
