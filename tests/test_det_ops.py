@@ -421,6 +421,39 @@ def test_ball_query_matches_a_brute_force_loop():
     assert empty[20:35].all() and (~empty).sum() > 10 and (idx[~empty][:, 0] != idx[~empty][:, -1]).any()
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 500.0, -4e3]), st.sampled_from([0.3, 1.0, 2.5]),
+       st.integers(1, 40), st.lists(st.integers(0, 120), min_size=1, max_size=3))
+def test_ball_query_matches_a_dense_reference(seed, offset, radius, nsample, counts):
+    """Strip-search ball query against all pairs, with points exactly at the radius,
+    duplicates and samples without points."""
+    rng = np.random.default_rng(seed)
+    n = sum(counts)
+    pts = rng.uniform(-4, 4, (n, 3)).astype(np.float32)
+    centres_per = [int(rng.integers(0, 30)) for _ in counts]
+    ctr = rng.uniform(-4, 4, (sum(centres_per), 3)).astype(np.float32)
+    if n > 3:
+        pts[1] = pts[0]  # duplicate point
+        pts[2] = pts[0] + np.float32([radius, 0, 0])  # exactly on a radius (of a centre at pts[0])
+    if len(ctr):
+        ctr[0] = pts[0] if n and counts[0] else ctr[0]
+    pts[:, :2] += offset
+    ctr[:, :2] += offset
+    xyz, new_xyz = torch.from_numpy(pts), torch.from_numpy(ctr)
+    idx, empty = sampling.ball_query(radius, nsample, xyz, torch.tensor(counts), new_xyz, torch.tensor(centres_per))
+    r2 = float(torch.tensor(radius, dtype=torch.float32) ** 2)
+    p0 = c0 = 0
+    for cnt, ccnt in zip(counts, centres_per):
+        block, centres = xyz[p0:p0 + cnt], new_xyz[c0:c0 + ccnt]
+        d2 = ((centres[:, None, 0] - block[None, :, 0]) ** 2 + (centres[:, None, 1] - block[None, :, 1]) ** 2
+              + (centres[:, None, 2] - block[None, :, 2]) ** 2)
+        for m, row in enumerate((d2 < r2).tolist()):
+            hits = [k for k, h in enumerate(row) if h][:nsample]
+            want = (hits + [hits[0]] * nsample)[:nsample] if hits else [0] * nsample
+            assert idx[c0 + m].tolist() == want and bool(empty[c0 + m]) == (not hits)
+        p0, c0 = p0 + cnt, c0 + ccnt
+
+
 def test_grouping_and_query_and_group():
     gen = torch.Generator().manual_seed(8)
     xyz = torch.rand(30, 3, generator=gen)

@@ -16,7 +16,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from omnilidar.downstream.det.ops.points import pairs_within_squares
+
 _CHUNK = 1 << 22  # (centres x candidates) pairs per vectorised batch
+_SQUARE_MARGIN = 1e-3  # m added to the candidate squares; the distance test decides
 
 
 def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
@@ -69,14 +72,30 @@ def _batch_starts(counts: torch.Tensor) -> list[int]:
     return [sum(c[:i]) for i in range(len(c) + 1)]
 
 
+def _first_in_index_order(ip: torch.Tensor, ic: torch.Tensor, n: int, m: int, nsample: int):
+    """From hit pairs (point ip, centre ic), each centre's ``nsample`` lowest point
+    indices, padded with its first; (idx (m, nsample), empty (m,)), empty rows 0."""
+    key, _ = torch.sort(ic * max(n, 1) + ip)
+    ic, ip = key // max(n, 1), key % max(n, 1)
+    counts = torch.bincount(ic, minlength=m)
+    rank = torch.arange(len(key), device=key.device) - (torch.cumsum(counts, 0) - counts)[ic]
+    keep = rank < nsample
+    idx = torch.zeros(m, nsample, dtype=torch.long, device=key.device)
+    idx[ic[keep], rank[keep]] = ip[keep]
+    filled = torch.arange(nsample, device=key.device) < counts[:, None]
+    return torch.where(filled, idx, idx[:, :1]), counts == 0
+
+
 def ball_query(radius: float, nsample: int, xyz: torch.Tensor, xyz_batch_cnt: torch.Tensor,
                new_xyz: torch.Tensor, new_xyz_batch_cnt: torch.Tensor):
     """Stack ball query: for each centre of ``new_xyz`` (M, 3), the first ``nsample``
-    points of its own sample, in index order, with squared distance < radius^2.
+    points of its own sample, in index order, with squared distance < radius^2
+    (computed in the input dtype, as the CUDA kernel).
 
     Returns (idx (M, nsample) long, local to the sample; empty_ball_mask (M,) bool).
     A ball with fewer points repeats its first one; an empty ball gives zeros
-    and sets the mask.
+    and sets the mask. Candidates come from a sorted-strip search around each
+    centre (``points.pairs_within_squares``), not from all N x M pairs.
     """
     if len(xyz_batch_cnt) != len(new_xyz_batch_cnt):
         raise ValueError("xyz_batch_cnt and new_xyz_batch_cnt must have one count per sample")
@@ -86,18 +105,25 @@ def ball_query(radius: float, nsample: int, xyz: torch.Tensor, xyz_batch_cnt: to
                          f"got {len(xyz)} / {len(new_xyz)}")
     idx = torch.zeros(len(new_xyz), nsample, dtype=torch.long, device=new_xyz.device)
     empty = torch.ones(len(new_xyz), dtype=torch.bool, device=new_xyz.device)
-    r2 = radius * radius
+    r = torch.tensor(radius, dtype=xyz.dtype)
+    r2 = (r * r).item()  # squared in the input dtype, as the kernel does
     for b in range(len(p_start) - 1):
-        pts = xyz[p_start[b]:p_start[b + 1]]
-        n = len(pts)
-        rows = max(1, _CHUNK // max(n, 1))
-        local = torch.arange(n, device=xyz.device)
-        for c0 in range(c_start[b], c_start[b + 1], rows):
-            c1 = min(c_start[b + 1], c0 + rows)
-            ctr = new_xyz[c0:c1]
-            d2 = ((ctr[:, None, 0] - pts[None, :, 0]) ** 2 + (ctr[:, None, 1] - pts[None, :, 1]) ** 2
-                  + (ctr[:, None, 2] - pts[None, :, 2]) ** 2)
-            idx[c0:c1], empty[c0:c1] = _first_hits(d2 < r2, local.expand(c1 - c0, n), nsample)
+        pts, ctr = xyz[p_start[b]:p_start[b + 1]], new_xyz[c_start[b]:c_start[b + 1]]
+        if len(pts) == 0 or len(ctr) == 0:
+            continue
+        reach = torch.full((len(ctr),), radius * (1 + 1e-6) + _SQUARE_MARGIN, dtype=torch.float64,
+                           device=ctr.device)
+        hits_p, hits_c = [], []
+        for ip, ic in pairs_within_squares(pts, ctr[:, :2].to(torch.float64), reach):
+            d2 = ((ctr[ic, 0] - pts[ip, 0]) ** 2 + (ctr[ic, 1] - pts[ip, 1]) ** 2
+                  + (ctr[ic, 2] - pts[ip, 2]) ** 2)
+            hit = d2 < r2
+            hits_p.append(ip[hit])
+            hits_c.append(ic[hit])
+        if hits_p:
+            rows = slice(c_start[b], c_start[b + 1])
+            idx[rows], empty[rows] = _first_in_index_order(torch.cat(hits_p), torch.cat(hits_c),
+                                                           len(pts), len(ctr), nsample)
     return idx, empty
 
 
@@ -170,7 +196,8 @@ def voxel_query(max_range, radius: float, nsample: int, xyz: torch.Tensor, new_x
     size = torch.tensor([nz, ny, nx], device=dev)
     idx = torch.zeros(len(new_xyz), nsample, dtype=torch.long, device=dev)
     empty = torch.ones(len(new_xyz), dtype=torch.bool, device=dev)
-    r2 = radius * radius
+    r = torch.tensor(radius, dtype=xyz.dtype)
+    r2 = (r * r).item()  # squared in the input dtype, as the kernel does
     rows = max(1, _CHUNK // k)
     for c0 in range(0, len(new_xyz), rows):
         c1 = min(len(new_xyz), c0 + rows)
