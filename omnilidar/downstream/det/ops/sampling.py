@@ -39,14 +39,15 @@ def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
     x, y, z = (xyz[..., k].contiguous() for k in range(3))
     nearest = torch.full((b, n), 1e10, dtype=xyz.dtype, device=xyz.device)
     rows = torch.arange(b, device=xyz.device)
-    last = torch.zeros(b, dtype=torch.long, device=xyz.device)
-    for j in range(1, npoint):
-        px, py, pz = x[rows, last, None], y[rows, last, None], z[rows, last, None]
-        d = (x - px) * (x - px) + (y - py) * (y - py) + (z - pz) * (z - pz)
-        nearest = torch.minimum(nearest, d)
+    last = out[:, 0]
+    picks = [last]
+    for _ in range(1, npoint):
+        p = xyz[rows, last]  # (B, 3) the point chosen last
+        dx, dy, dz = x - p[:, 0:1], y - p[:, 1:2], z - p[:, 2:3]
+        torch.minimum(nearest, dx * dx + dy * dy + dz * dz, out=nearest)
         last = torch.argmax(nearest, dim=1)
-        out[:, j] = last
-    return out
+        picks.append(last)
+    return torch.stack(picks, dim=1)
 
 
 def _first_hits(hit: torch.Tensor, values: torch.Tensor, nsample: int):
