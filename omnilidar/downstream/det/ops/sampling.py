@@ -7,18 +7,23 @@ their sample (0 .. N_b - 1); voxel-query indices are whatever the voxel -> point
 map holds (global there). Empty neighbourhoods come back as index 0 with
 ``empty_ball_mask`` set, exactly as the CUDA ops return them.
 
-Queries are vectorised over centres and candidates in chunks of at most
-``_CHUNK`` pairs, so memory stays bounded for tens of thousands of centres.
+Everything is vectorised, in chunks of bounded size: ball queries look only at
+the points near each centre (a sorted-strip search shared with points in
+boxes), voxel queries at the voxels of each centre's window.
 """
 
 from __future__ import annotations
+
+import itertools
 
 import torch
 from torch import nn
 
 from omnilidar.downstream.det.ops.points import pairs_within_squares
 
-_CHUNK = 1 << 22  # (centres x candidates) pairs per vectorised batch
+# (centre, window voxel) pairs per voxel-query batch: ~80 MB of scratch on CPU.
+_CHUNK = {"cpu": 1 << 20}
+_CHUNK_DEFAULT = 1 << 23
 _SQUARE_MARGIN = 1e-3  # m added to the candidate squares; the distance test decides
 
 
@@ -55,22 +60,18 @@ def _first_hits(hit: torch.Tensor, values: torch.Tensor, nsample: int):
     ``nsample`` hits in column order, padded with the first hit's value.
     Returns (idx (R, nsample) long, empty (R,) bool); empty rows give 0."""
     k = hit.shape[1]
-    cols = torch.arange(k, device=hit.device)
-    key = torch.where(hit, cols, k)
-    take = min(nsample, k)
-    first = torch.topk(key, take, dim=1, largest=False, sorted=True).values if k else key[:, :0]
-    if take < nsample:  # fewer candidates than samples: pad the columns
-        first = torch.cat([first, first.new_full((len(first), nsample - take), k)], dim=1)
-    found = first < k
-    empty = ~found[:, 0] if nsample else torch.ones(len(hit), dtype=torch.bool, device=hit.device)
-    picked = torch.gather(values, 1, first.clamp(max=max(k - 1, 0))) if k else first.new_zeros(first.shape)
-    picked = torch.where(found, picked, picked[:, :1])
-    return torch.where(empty[:, None], torch.zeros_like(picked), picked), empty
+    key = torch.where(hit, torch.arange(k, device=hit.device), k)
+    first = torch.topk(key, min(nsample, k), dim=1, largest=False, sorted=True).values
+    if first.shape[1] < nsample:  # fewer candidates than samples: pad the columns
+        first = torch.cat([first, first.new_full((len(first), nsample - first.shape[1]), k)], dim=1)
+    picked = torch.gather(values, 1, first.clamp(max=k - 1))
+    picked = torch.where(first < k, picked, picked[:, :1])
+    empty = ~hit.any(dim=1)
+    return torch.where(empty[:, None], 0, picked), empty
 
 
 def _batch_starts(counts: torch.Tensor) -> list[int]:
-    c = counts.tolist()
-    return [sum(c[:i]) for i in range(len(c) + 1)]
+    return list(itertools.accumulate(counts.tolist(), initial=0))
 
 
 def _first_in_index_order(ip: torch.Tensor, ic: torch.Tensor, n: int, m: int, nsample: int):
@@ -199,7 +200,7 @@ def voxel_query(max_range, radius: float, nsample: int, xyz: torch.Tensor, new_x
     empty = torch.ones(len(new_xyz), dtype=torch.bool, device=dev)
     r = torch.tensor(radius, dtype=xyz.dtype)
     r2 = (r * r).item()  # squared in the input dtype, as the kernel does
-    rows = max(1, _CHUNK // k)
+    rows = max(1, _CHUNK.get(dev.type, _CHUNK_DEFAULT) // k)
     for c0 in range(0, len(new_xyz), rows):
         c1 = min(len(new_xyz), c0 + rows)
         coords = new_coords[c0:c1].long()
