@@ -344,11 +344,13 @@ def test_points_on_faces_count_and_empty_inputs():
 
 
 def _dense_inside(pts: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    ox = pts[:, None, 0] - boxes[None, :, 0]
-    oy = pts[:, None, 1] - boxes[None, :, 1]
-    c, s_ = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
-    return ((np.abs(ox * c + oy * s_) <= boxes[:, 3] / 2) & (np.abs(oy * c - ox * s_) <= boxes[:, 4] / 2)
-            & (np.abs(pts[:, None, 2] - boxes[None, :, 2]) <= boxes[:, 5] / 2))
+    """All pairs, with torch's cos / sin (numpy's may differ by an ulp, which
+    matters for points exactly on a face)."""
+    p, b = torch.from_numpy(pts), torch.from_numpy(boxes)
+    ox, oy = p[:, None, 0] - b[None, :, 0], p[:, None, 1] - b[None, :, 1]
+    c, s_ = torch.cos(b[:, 6]), torch.sin(b[:, 6])
+    return (((ox * c + oy * s_).abs() <= 0.5 * b[:, 3]) & ((oy * c - ox * s_).abs() <= 0.5 * b[:, 4])
+            & ((p[:, None, 2] - b[None, :, 2]).abs() <= 0.5 * b[:, 5])).numpy()
 
 
 @settings(max_examples=40, deadline=None, derandomize=True)
