@@ -559,3 +559,13 @@ def test_every_operator_gives_the_same_answer_on_cuda():
     got = sampling.query_and_group(0.8, 16, flat.to(cuda), cnt.to(cuda), centres.to(cuda), ccnt.to(cuda), flat.to(cuda) * 2)
     for g, w in zip(got, want):
         torch.testing.assert_close(g.cpu(), w)
+    occupied = torch.rand(1, 4, 10, 10, generator=gen) < 0.3
+    coords = occupied.nonzero()
+    vox_xyz = coords[:, [3, 2, 1]].float() * 0.4 + 0.2
+    point_indices = torch.full((1, 4, 10, 10), -1, dtype=torch.int32)
+    point_indices[occupied] = torch.arange(len(coords), dtype=torch.int32)
+    args = ((1, 2, 2), 0.9, 8, vox_xyz, vox_xyz[:30], coords[:30], point_indices)
+    want = sampling.voxel_query(*args)
+    got = sampling.voxel_query(*(a.to(cuda) if torch.is_tensor(a) else a for a in args))
+    for g, w in zip(got, want):
+        assert torch.equal(g.cpu(), w)
