@@ -48,9 +48,10 @@ def _expand_runs(first: torch.Tensor, counts: torch.Tensor, owners: torch.Tensor
         torch.arange(total, device=counts.device) - run_start), owner
 
 
-def _square_candidates(points: torch.Tensor, centre: torch.Tensor, reach: torch.Tensor):
-    """Yield (point, box) chunks covering every point within each box's bounding
-    square |x - cx| <= reach, |y - cy| <= reach (a superset; the exact test follows).
+def pairs_within_squares(points: torch.Tensor, centre: torch.Tensor, reach: torch.Tensor):
+    """Yield (point index, centre index) chunks covering every point (N, >=2) with
+    |x - cx| <= reach and |y - cy| <= reach for centres (M, 2) float64 and reach
+    (M,) float64: a superset, for an exact test to follow.
 
     Points are sorted once by (x strip, y), so a box's candidates are one
     contiguous run per strip it spans, found by binary search; every step is a
@@ -88,7 +89,7 @@ def _inside_pairs(points: torch.Tensor, boxes: torch.Tensor):
     b = boxes[:, :7].to(device=points.device, dtype=torch.float64)
     reach = 0.5 * torch.hypot(b[:, 3], b[:, 4]) + _MARGIN
     cos, sin = torch.cos(b[:, 6]), torch.sin(b[:, 6])
-    for ip, ib in _square_candidates(points, b[:, :2], reach):
+    for ip, ib in pairs_within_squares(points, b[:, :2], reach):
         q = points[ip, :3].to(torch.float64)
         ox, oy = q[:, 0] - b[ib, 0], q[:, 1] - b[ib, 1]
         inside = (
