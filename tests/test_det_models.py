@@ -202,8 +202,9 @@ def test_rois_near_the_boxes_train_the_refinement():
 def test_eval_returns_contract_predictions_and_recall():
     model = _tiny_model()
     model.eval()
+    batch = _tiny_batch()
     with torch.no_grad():
-        pred_dicts, recall = model(_tiny_batch())
+        pred_dicts, recall = model(batch)
     assert len(pred_dicts) == 2
     for pred in pred_dicts:
         assert set(pred) == {"pred_boxes", "pred_scores", "pred_labels"}
@@ -211,6 +212,7 @@ def test_eval_returns_contract_predictions_and_recall():
         assert pred["pred_boxes"].shape == (k, 7) and pred["pred_labels"].shape == (k,)
         assert k == 0 or (pred["pred_labels"] >= 1).all()
         assert (pred["pred_scores"] >= 0.3).all()  # POST_PROCESSING.SCORE_THRESH
+        assert (pred["pred_boxes"][:, 3:6] > 0).all()  # nothing refined from RoI padding
     assert recall["gt"] == 3  # the zero padding row of sample 1 is not a box
     assert set(recall) == {"gt"} | {f"{s}_{t}" for s in ("roi", "rcnn") for t in (0.3, 0.5, 0.7)}
 
@@ -364,3 +366,24 @@ def test_roi_targets_are_in_the_roi_frame_with_flipped_heading():
     assert torch.allclose(local[:3], torch.tensor([math.cos(0.5), -math.sin(0.5), 0.0]), atol=1e-5)
     assert abs(float(local[6])) < 1e-5  # heading flipped by pi into (-pi/2, pi/2)
     assert torch.allclose(out["gt_of_rois_src"][0, 0, :7], gt)
+
+
+def test_post_processing_scores_nms_labels_and_skips_padding_rois():
+    from omnilidar.downstream.det.models.post_processing import post_processing
+
+    boxes = torch.tensor([[[5.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0],
+                           [5.1, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0],  # suppressed by the first
+                           [15.0, 3.0, -1.0, 4.0, 2.0, 1.5, 1.0],
+                           [25.0, 3.0, -1.0, 4.0, 2.0, 1.5, 1.0],  # under SCORE_THRESH
+                           [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]]])  # refined from a padding RoI
+    logits = torch.tensor([[[3.0], [2.0], [1.0], [-3.0], [4.0]]])
+    gt = torch.tensor([[[5.0, 0.2, -1.0, 4.0, 2.0, 1.5, 0.0, 1.0], [40.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0, 2.0]]])
+    batch = {"batch_size": 1, "batch_box_preds": boxes, "batch_cls_preds": logits, "cls_preds_normalized": False,
+             "rois": boxes.clone(), "roi_labels": torch.tensor([[2, 2, 1, 1, 0]]), "has_class_labels": True,
+             "gt_boxes": gt}
+    preds, recall = post_processing(batch, CONFIGS["paper"]["POST_PROCESSING"], num_class=2)
+    assert torch.equal(preds[0]["pred_boxes"], boxes[0, [0, 2]])
+    assert torch.allclose(preds[0]["pred_scores"], torch.sigmoid(torch.tensor([3.0, 1.0])))
+    assert preds[0]["pred_labels"].tolist() == [2, 1]  # the RoIs' labels (has_class_labels)
+    assert recall == {"gt": 2, "roi_0.3": 1, "rcnn_0.3": 1, "roi_0.5": 1, "rcnn_0.5": 1,
+                      "roi_0.7": 1, "rcnn_0.7": 1}
