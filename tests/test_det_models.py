@@ -285,10 +285,11 @@ def test_anchor_layout_matches_openpcdet():
 def test_bad_model_config_raises_input_error():
     cfg = copy.deepcopy(CONFIGS["small"])
     cfg["MAP_TO_BEV"]["NUM_BEV_FEATURES"] = 48
-    model = build_detector(cfg, 1, ["Car"], TINY_RANGE, TINY_VOXEL)
-    model.eval()
-    with pytest.raises(ValueError, match="NUM_BEV_FEATURES is 48"):
-        model(_tiny_batch())
+    with pytest.raises(InputError, match="NUM_BEV_FEATURES is 48 but the 3D backbone on this grid gives 64"):
+        build_detector(cfg, 1, ["Car"], TINY_RANGE, TINY_VOXEL)
+    # 25 z cells leave one slice after conv_out: 32 channels, not 64.
+    with pytest.raises(InputError, match="gives 32"):
+        build_detector(CONFIGS["small"], 1, ["Car"], TINY_RANGE, [0.2, 0.2, 0.16])
     broken = copy.deepcopy(CONFIGS["small"])
     del broken["ROI_HEAD"]["SHARED_FC"]
     with pytest.raises(InputError, match="det.yaml: MODEL config lacks key 'SHARED_FC'"):

@@ -87,8 +87,13 @@ class Detector3D(nn.Module):
             m = cls(input_channels=info["num_point_features"], sparse_backend=sparse_backend, **common)
             info["num_point_features"] = m.num_point_features
             info["backbone_channels"] = getattr(m, "backbone_channels", None)
+            info["backbone_bev_features"] = getattr(m, "num_bev_features", None)
         elif key == "MAP_TO_BEV":
             m = cls(**common)
+            expected = info.get("backbone_bev_features")
+            if expected is not None and m.num_bev_features != expected:
+                raise ValueError(f"MAP_TO_BEV.NUM_BEV_FEATURES is {m.num_bev_features} but the 3D backbone on "
+                                 f"this grid gives {expected} (its output width x z slices)")
             info["num_bev_features"] = m.num_bev_features
         elif key == "PFE":
             m = cls(num_bev_features=info.get("num_bev_features"), num_rawpoint_features=info["num_rawpoint_features"],
