@@ -110,6 +110,12 @@ def test_paper_model_loads_openpcdet_state_dict_strictly():
     model.load_state_dict(foreign, strict=True)
     key = "backbone_3d.conv2.0.0.weight"
     assert torch.equal(model.state_dict()[key], foreign[key])
+    # A checkpoint trained with spconv 1.x stores sparse weights as (k, k, k, in, out).
+    old_layout = {k: v.permute(1, 2, 3, 4, 0).contiguous() if v.ndim == 5 else v for k, v in foreign.items()}
+    assert old_layout[key].shape == (3, 3, 3, 16, 32)
+    model.load_openpcdet_state(old_layout)
+    assert torch.equal(model.state_dict()[key], foreign[key])
+    assert torch.equal(model.state_dict()["backbone_3d.conv_out.0.weight"], foreign["backbone_3d.conv_out.0.weight"])
 
 
 def _tiny_cfg() -> dict:

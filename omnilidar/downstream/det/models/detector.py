@@ -19,6 +19,7 @@ from omnilidar.downstream.det.models.backbone_3d import VoxelBackBone8x
 from omnilidar.downstream.det.models.dense_heads import AnchorHeadSingle
 from omnilidar.downstream.det.models.map_to_bev import HeightCompression
 from omnilidar.downstream.det.models.post_processing import post_processing
+from omnilidar.downstream.det.models.spconv_layout import adapt_spconv_weights
 from omnilidar.downstream.det.models.vfe import MeanVFE
 from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
 
@@ -115,6 +116,10 @@ class Detector3D(nn.Module):
             m = cls(input_channels=info["num_point_features"], backbone_channels=info.get("backbone_channels"),
                     num_class=agnostic_classes, **common)
         return m
+
+    def load_openpcdet_state(self, model_state: dict[str, torch.Tensor], strict: bool = True):
+        """Load an OpenPCDet checkpoint's ``model_state`` (spconv 1.x sparse weights permuted)."""
+        return self.load_state_dict(adapt_spconv_weights(model_state, self.state_dict()), strict=strict)
 
     def forward(self, batch_dict: dict):
         for module in self.module_list:
