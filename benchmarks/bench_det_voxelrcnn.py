@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from omnilidar.downstream.det.models import build_detector
+from omnilidar.downstream.det.models.detector import build_detector
 
 RANGE = [0.0, -40.0, -3.0, 70.4, 40.0, 1.0]
 VOXEL = [0.05, 0.05, 0.1]

@@ -11,7 +11,7 @@ import pytest
 import torch
 import yaml
 
-from omnilidar.downstream.det.models import build_detector
+from omnilidar.downstream.det.models.detector import build_detector
 from omnilidar.downstream.det.models.anchor_generator import generate_anchors
 from omnilidar.downstream.det.models.box_coder import ResidualCoder
 from omnilidar.downstream.det.optim import adam_onecycle, build_optimizer, clip_gradients
