@@ -186,7 +186,7 @@ _box = st.tuples(
 )
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60, deadline=None, derandomize=True)
 @given(st.lists(_box, min_size=1, max_size=6), st.lists(_box, min_size=1, max_size=6))
 def test_iou_properties(rows_a, rows_b):
     a = torch.tensor(rows_a, dtype=torch.float64)
@@ -209,7 +209,7 @@ def test_iou_properties(rows_a, rows_b):
 _near = st.floats(-1e-3, 1e-3, allow_nan=False, allow_infinity=False)
 
 
-@settings(max_examples=80, deadline=None)
+@settings(max_examples=80, deadline=None, derandomize=True)
 @given(st.floats(-math.pi, math.pi, **_finite), st.floats(0.3, 5, **_finite), st.floats(0.3, 3, **_finite),
        st.sampled_from([0.0, 0.5, 1.0, 2.0]), st.sampled_from([0.0, 1.0]), _near, _near, _near)
 def test_nearly_parallel_and_edge_sharing_pairs_are_shift_invariant(heading, dx, dy, along, across, eps_h, eps_x, eps_y):
@@ -231,6 +231,23 @@ def test_nearly_parallel_and_edge_sharing_pairs_are_shift_invariant(heading, dx,
     if Polygon is not None:
         inter = _shapely_overlap_bev(near, near)[0, 1]
         assert abs(float(iou.boxes_overlap_bev(near, near)[0, 1]) - inter) < 1e-9
+
+
+def test_chunked_evaluation_gives_the_same_answers(monkeypatch):
+    gen = torch.Generator().manual_seed(11)
+    a, b = _random_boxes(gen, 70, 5.0), _random_boxes(gen, 50, 5.0)
+    whole = iou.boxes_iou_bev(a, b)
+    ia, ib, pairs = iou.iou_bev_self_pairs(a)
+    monkeypatch.setattr(iou, "_PREFILTER_CHUNK", {"cpu": 7 * 50})  # 7 rows per block, ragged end
+    monkeypatch.setattr(iou, "_PAIR_CHUNK", {"cpu": 13})
+    assert torch.equal(iou.boxes_iou_bev(a, b), whole)
+    ja, jb, chunked = iou.iou_bev_self_pairs(a)
+    assert (ja < jb).all() and len(set(zip(ja.tolist(), jb.tolist()))) == len(ja)
+    dense = iou.boxes_iou_bev(a, a)
+    torch.testing.assert_close(chunked, dense[ja, jb], atol=1e-12, rtol=0)
+    # Every overlapping pair i < j is listed, chunked or not.
+    assert sorted(zip(ja.tolist(), jb.tolist())) == sorted(zip(ia.tolist(), ib.tolist()))
+    assert {(i, j) for i, j in (torch.triu(dense, 1) > 0).nonzero().tolist()} <= set(zip(ja.tolist(), jb.tolist()))
 
 
 # ---------------------------------------------------------------- NMS
@@ -292,6 +309,7 @@ def test_class_agnostic_and_multi_class_nms_follow_openpcdet():
 # ---------------------------------------------------------------- points in boxes
 
 from omnilidar.downstream.det.ops import points as det_points  # noqa: E402
+from omnilidar.lidar.boxes import box_corners  # noqa: E402
 
 
 def test_points_in_boxes_match_a_per_pair_loop():
@@ -323,6 +341,34 @@ def test_points_on_faces_count_and_empty_inputs():
     assert det_points.points_in_boxes(pts, box[:0]).tolist() == [-1] * 5
     with pytest.raises(ValueError, match="boxes must be"):
         det_points.points_in_boxes(pts, box[:, :6])
+
+
+def _dense_inside(pts: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """All pairs, with torch's cos / sin (numpy's may differ by an ulp, which
+    matters for points exactly on a face)."""
+    p, b = torch.from_numpy(pts), torch.from_numpy(boxes)
+    ox, oy = p[:, None, 0] - b[None, :, 0], p[:, None, 1] - b[None, :, 1]
+    c, s_ = torch.cos(b[:, 6]), torch.sin(b[:, 6])
+    return (((ox * c + oy * s_).abs() <= 0.5 * b[:, 3]) & ((oy * c - ox * s_).abs() <= 0.5 * b[:, 4])
+            & ((p[:, None, 2] - b[None, :, 2]).abs() <= 0.5 * b[:, 5])).numpy()
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 1e4, -3e4]), st.integers(1, 60), st.floats(0.0, 1.0))
+def test_points_in_boxes_never_miss_a_point(seed, offset, n_boxes, zero_fraction):
+    """Sorted-strip candidate search against a dense float64 test, with points on
+    faces and corners, zero-size boxes, boxes away from every point, far offsets."""
+    rng = np.random.default_rng(seed)
+    boxes = np.column_stack([rng.uniform(-12, 12, (n_boxes, 3)), rng.uniform(0.1, 6, (n_boxes, 3)),
+                             rng.uniform(-4, 4, n_boxes)])
+    boxes[rng.random(n_boxes) < zero_fraction * 0.3, 3:6] = 0.0
+    boxes[rng.random(n_boxes) < 0.1, 0] += 100.0  # far from all points
+    corners = np.concatenate([box_corners(boxes[:, :7]).reshape(-1, 3), boxes[:, :3]])
+    pts = np.concatenate([rng.uniform(-15, 15, (400, 3)), corners])
+    pts[:, :2] += offset
+    boxes[:, :2] += offset
+    got = det_points.points_in_boxes_mask(torch.from_numpy(pts), torch.from_numpy(boxes)).numpy()
+    np.testing.assert_array_equal(got, _dense_inside(pts, boxes))
 
 
 # ---------------------------------------------------------------- sampling and grouping
@@ -375,6 +421,39 @@ def test_ball_query_matches_a_brute_force_loop():
         want = (hits + [hits[0]] * 5)[:5] if hits else [0] * 5
         assert idx[m].tolist() == want and bool(empty[m]) == (not hits)
     assert empty[20:35].all() and (~empty).sum() > 10 and (idx[~empty][:, 0] != idx[~empty][:, -1]).any()
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 500.0, -4e3]), st.sampled_from([0.3, 1.0, 2.5]),
+       st.integers(1, 40), st.lists(st.integers(0, 120), min_size=1, max_size=3))
+def test_ball_query_matches_a_dense_reference(seed, offset, radius, nsample, counts):
+    """Strip-search ball query against all pairs, with points exactly at the radius,
+    duplicates and samples without points."""
+    rng = np.random.default_rng(seed)
+    n = sum(counts)
+    pts = rng.uniform(-4, 4, (n, 3)).astype(np.float32)
+    centres_per = [int(rng.integers(0, 30)) for _ in counts]
+    ctr = rng.uniform(-4, 4, (sum(centres_per), 3)).astype(np.float32)
+    if n > 3:
+        pts[1] = pts[0]  # duplicate point
+        pts[2] = pts[0] + np.float32([radius, 0, 0])  # exactly on a radius (of a centre at pts[0])
+    if len(ctr):
+        ctr[0] = pts[0] if n and counts[0] else ctr[0]
+    pts[:, :2] += offset
+    ctr[:, :2] += offset
+    xyz, new_xyz = torch.from_numpy(pts), torch.from_numpy(ctr)
+    idx, empty = sampling.ball_query(radius, nsample, xyz, torch.tensor(counts), new_xyz, torch.tensor(centres_per))
+    r2 = float(torch.tensor(radius, dtype=torch.float32) ** 2)
+    p0 = c0 = 0
+    for cnt, ccnt in zip(counts, centres_per):
+        block, centres = xyz[p0:p0 + cnt], new_xyz[c0:c0 + ccnt]
+        d2 = ((centres[:, None, 0] - block[None, :, 0]) ** 2 + (centres[:, None, 1] - block[None, :, 1]) ** 2
+              + (centres[:, None, 2] - block[None, :, 2]) ** 2)
+        for m, row in enumerate((d2 < r2).tolist()):
+            hits = [k for k, h in enumerate(row) if h][:nsample]
+            want = (hits + [hits[0]] * nsample)[:nsample] if hits else [0] * nsample
+            assert idx[c0 + m].tolist() == want and bool(empty[c0 + m]) == (not hits)
+        p0, c0 = p0 + cnt, c0 + ccnt
 
 
 def test_grouping_and_query_and_group():
@@ -480,3 +559,13 @@ def test_every_operator_gives_the_same_answer_on_cuda():
     got = sampling.query_and_group(0.8, 16, flat.to(cuda), cnt.to(cuda), centres.to(cuda), ccnt.to(cuda), flat.to(cuda) * 2)
     for g, w in zip(got, want):
         torch.testing.assert_close(g.cpu(), w)
+    occupied = torch.rand(1, 4, 10, 10, generator=gen) < 0.3
+    coords = occupied.nonzero()
+    vox_xyz = coords[:, [3, 2, 1]].float() * 0.4 + 0.2
+    point_indices = torch.full((1, 4, 10, 10), -1, dtype=torch.int32)
+    point_indices[occupied] = torch.arange(len(coords), dtype=torch.int32)
+    args = ((1, 2, 2), 0.9, 8, vox_xyz, vox_xyz[:30], coords[:30], point_indices)
+    want = sampling.voxel_query(*args)
+    got = sampling.voxel_query(*(a.to(cuda) if torch.is_tensor(a) else a for a in args))
+    for g, w in zip(got, want):
+        assert torch.equal(g.cpu(), w)

@@ -25,10 +25,12 @@ import torch
 # could create where edges (nearly) coincide. Adversarial nearly parallel and
 # edge-sharing pairs at 1e3 m never went past 5, 6, 7, 8.
 _CAPACITIES = (6, 8, 10, 12)
-# Clipped pairs per vectorised batch: cache-sized on CPU, large on GPUs.
+# Work per vectorised batch, cache-sized on CPU, large on GPUs: clipped pairs,
+# and (N, M) entries of the circle prefilter.
 _PAIR_CHUNK = {"cpu": 1 << 13}
 _PAIR_CHUNK_DEFAULT = 1 << 18
-_PREFILTER_CHUNK = 1 << 22  # (N, M) prefilter entries per batch
+_PREFILTER_CHUNK = {"cpu": 1 << 18}
+_PREFILTER_CHUNK_DEFAULT = 1 << 24
 # Union floors, as OpenPCDet's iou3d_nms (BEV kernel 1e-8, 3D 1e-6).
 _BEV_EPS = 1e-8
 _VOLUME_EPS = 1e-6
@@ -131,20 +133,23 @@ def _candidate_pairs(ra: torch.Tensor, rb: torch.Tensor, upper_only: bool = Fals
     n, m = len(ra), len(rb)
     if n == 0 or m == 0:
         return
-    rad_a = torch.hypot(ra[:, 2], ra[:, 3])
-    rad_b = torch.hypot(rb[:, 2], rb[:, 3])
-    cols = torch.arange(m, device=ra.device)
-    rows = max(1, _PREFILTER_CHUNK // m)
+    # Radii with a relative slack of 1e-9, so that rounding never drops a pair.
+    rad_a = torch.hypot(ra[:, 2], ra[:, 3]) * (1 + 1e-9) + 1e-12
+    rad_b = torch.hypot(rb[:, 2], rb[:, 3]) * (1 + 1e-9) + 1e-12
+    kind = ra.device.type
+    rows = max(1, _PREFILTER_CHUNK.get(kind, _PREFILTER_CHUNK_DEFAULT) // m)
+    step = _PAIR_CHUNK.get(kind, _PAIR_CHUNK_DEFAULT)
     for r0 in range(0, n, rows):
-        sl = slice(r0, min(n, r0 + rows))
-        reach = rad_a[sl, None] + rad_b[None, :]
-        dist = torch.cdist(ra[sl, :2], rb[:, :2], compute_mode="donot_use_mm_for_euclid_dist")
-        near = dist - reach <= 1e-9 * (1.0 + reach)
+        r1 = min(n, r0 + rows)
+        c0 = r0 + 1 if upper_only else 0  # columns left of the block's diagonal never count
+        if c0 >= m:
+            break
+        dist = torch.cdist(ra[r0:r1, :2], rb[c0:, :2], compute_mode="donot_use_mm_for_euclid_dist")
+        near = dist <= rad_a[r0:r1, None] + rad_b[None, c0:]
         if upper_only:
-            near &= cols[None, :] > torch.arange(sl.start, sl.stop, device=ra.device)[:, None]
+            near = torch.triu(near)  # column c0 + j pairs with row r0 + i when j >= i
         ia, ib = torch.nonzero(near, as_tuple=True)
-        ia = ia + r0
-        step = _PAIR_CHUNK.get(ra.device.type, _PAIR_CHUNK_DEFAULT)
+        ia, ib = ia + r0, ib + c0
         for p0 in range(0, len(ia), step):
             yield ia[p0:p0 + step], ib[p0:p0 + step]
 
@@ -188,15 +193,44 @@ def boxes_iou_bev(boxes_a: torch.Tensor, boxes_b: torch.Tensor) -> torch.Tensor:
     return (inter / union.clamp(min=_BEV_EPS)).to(_result_dtype(boxes_a, boxes_b))
 
 
-def iou_bev_self_pairs(boxes: torch.Tensor, axis_aligned: bool = False):
+def _iou_upper_bound(ra: torch.Tensor, rb: torch.Tensor, area_a, area_b) -> torch.Tensor:
+    """Cheap upper bound of the IoU of paired rectangles: in each rectangle's own
+    frame the intersection is at most its overlap with the other's bounding box
+    there, and it is at most either area."""
+    def overlap_in_frame_of(r, o):
+        c, s = torch.cos(r[:, 4]), torch.sin(r[:, 4])
+        rel_x, rel_y = o[:, 0] - r[:, 0], o[:, 1] - r[:, 1]
+        loc_x, loc_y = c * rel_x + s * rel_y, c * rel_y - s * rel_x
+        cd, sd = torch.cos(o[:, 4] - r[:, 4]).abs(), torch.sin(o[:, 4] - r[:, 4]).abs()
+        hx, hy = cd * o[:, 2] + sd * o[:, 3], sd * o[:, 2] + cd * o[:, 3]
+        wx = torch.minimum(r[:, 2], loc_x + hx) - torch.maximum(-r[:, 2], loc_x - hx)
+        wy = torch.minimum(r[:, 3], loc_y + hy) - torch.maximum(-r[:, 3], loc_y - hy)
+        return wx.clamp(min=0) * wy.clamp(min=0)
+
+    inter = torch.minimum(overlap_in_frame_of(ra, rb), overlap_in_frame_of(rb, ra))
+    inter = torch.minimum(inter, torch.minimum(area_a, area_b))
+    return inter / (area_a + area_b - inter).clamp(min=_BEV_EPS)
+
+
+def iou_bev_self_pairs(boxes: torch.Tensor, axis_aligned: bool = False, above: float | None = None):
     """Sparse BEV IoU of a box set with itself: (i, j, iou) over the pairs i < j
     that can overlap (float64 IoU), without an (N, N) matrix; for NMS.
-    ``axis_aligned`` ignores the headings (dx along x), as OpenPCDet's iou_normal."""
+
+    ``axis_aligned`` ignores the headings (dx along x), as OpenPCDet's
+    iou_normal. With ``above``, pairs whose IoU provably cannot exceed it (by a
+    bounding-box upper bound) are left out before the exact clipping.
+    """
     _check_boxes(boxes, 7, "boxes")
     rects, areas = _bev_rects(boxes), _areas(boxes)
     if axis_aligned:
         rects[:, 4] = 0.0
-    parts = [(ia, ib, _pair_overlap(rects[ia], rects[ib])) for ia, ib in _candidate_pairs(rects, rects, True)]
+    parts = []
+    for ia, ib in _candidate_pairs(rects, rects, True):
+        if above is not None:
+            # The bound is computed in float64 too; the slack keeps it a bound.
+            maybe = _iou_upper_bound(rects[ia], rects[ib], areas[ia], areas[ib]) > above - 1e-9
+            ia, ib = ia[maybe], ib[maybe]
+        parts.append((ia, ib, _pair_overlap(rects[ia], rects[ib])))
     if not parts:
         empty = torch.zeros(0, dtype=torch.long, device=boxes.device)
         return empty, empty, rects.new_zeros(0)
