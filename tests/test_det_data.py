@@ -68,12 +68,12 @@ def test_platform_config_classes_shift_and_anchors():
     drone, quad = platform_config(det, "drone"), platform_config(det, "quadruped")
     assert drone.class_names == ("Car",) and quad.class_names == ("Car", "Pedestrian")
     assert drone.shift[2] > 5 and quad.shift[2] < 0  # ground moved to about -1.7 m for both
-    assert list(drone.grid_size) == [376, 752, 40]
+    assert list(drone.grid_size) == [752, 1504, 40]
     anchors = anchor_generator_config(quad)
     assert [a["class_name"] for a in anchors] == ["Car", "Pedestrian"]
     assert anchors[1]["anchor_sizes"] == [[0.8, 0.6, 1.73]] and anchors[0]["matched_threshold"] == 0.6
-    paper = platform_config(det_section(voxel_size=[0.1, 0.1, 0.15]), "drone")
-    assert list(paper.grid_size) == [752, 1504, 40]
+    coarse = platform_config(det_section(voxel_size=[0.2, 0.2, 0.15]), "drone")
+    assert list(coarse.grid_size) == [376, 752, 40]
 
 
 def test_platform_config_rejects_bad_settings():

@@ -174,7 +174,6 @@ def test_tiny_chain_runs_for_real(tmp_path):
 
     from omnilidar.config import validate
 
-    pytest.importorskip("omnilidar.downstream.det.models", reason="detectors (det-voxelrcnn) not merged yet")
     pytest.importorskip("omnilidar.metrics.kitti_ap", reason="KITTI evaluator (det-eval) not merged yet")
     test_cfg = yaml.safe_load(TEST_CONFIG.read_text())
     synthetic = validate(test_cfg.get("synthetic", {}), "synthetic.schema.yaml")

@@ -69,9 +69,11 @@ def model_config(settings: dict, detector: str, cfg: PlatformConfig, path: str |
     return model
 
 
-def build(model: dict, cfg: PlatformConfig):
-    """The detector module (``omnilidar.downstream.det.models.build_detector``) for a resolved MODEL section."""
-    from omnilidar.downstream.det.models import build_detector
+def build(model: dict, cfg: PlatformConfig, seed: int = 0):
+    """The detector module (``omnilidar.downstream.det.models.detector.build_detector``) for a resolved
+    MODEL section; ``seed`` seeds the heads' sampling generator."""
+    from omnilidar.downstream.det.models.detector import build_detector
 
     return build_detector(model, num_class=len(cfg.class_names), class_names=list(cfg.class_names),
-                          point_cloud_range=list(cfg.point_cloud_range), voxel_size=list(cfg.voxel_size))
+                          point_cloud_range=list(cfg.point_cloud_range), voxel_size=list(cfg.voxel_size),
+                          seed=int(seed))

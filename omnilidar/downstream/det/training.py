@@ -131,7 +131,7 @@ def train_detector(settings: dict, detector: str, model_cfg: dict, cfg: Platform
     )
 
     torch.manual_seed(int(np.random.default_rng([int(seed), 0xDE7C]).integers(2**62)))
-    net = build(model_cfg, cfg).to(device)
+    net = build(model_cfg, cfg, seed).to(device)
     model = make_model(net)
     optimizer, step_schedule = adam_onecycle(net, sched, iterations)
     optim_wrapper = OptimWrapper(optimizer=optimizer, clip_grad=dict(max_norm=float(sched["grad_norm_clip"])))
