@@ -1,0 +1,108 @@
+"""Time PV-RCNN's own stages at paper scale on one synthetic frame.
+
+Stages (OpenPCDet's pv_rcnn.yaml settings from config/detectors/pv_rcnn.yaml):
+voxel set abstraction (2048 FPS keypoints, SA on raw points and x_conv1..4, BEV
+interpolation), the keypoint head, and RoI-grid pooling of 128 RoIs per frame
+(6x6x6 grid, two radii), forward and forward+backward, median of repeats.
+The sparse maps are the frame's occupied voxels at strides 1, 2, 4, 8 with
+random features (the backbone itself is not timed here).
+
+    python benchmarks/bench_det_pvrcnn.py [--points 20000] [--device cpu|cuda] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+from omnilidar.downstream.det.models.dense_heads.point_head_simple import PointHeadSimple
+from omnilidar.downstream.det.models.pfe.voxel_set_abstraction import VoxelSetAbstraction
+from omnilidar.downstream.det.models.pointnet2_stack import batch_counts, build_local_aggregation_module
+from omnilidar.downstream.det.models.roi_heads.roi_grid import roi_grid_points
+from omnilidar.sparse.tensor import SparseTensor
+
+ROOT = Path(__file__).resolve().parents[1]
+POINT_CLOUD_RANGE = [0.0, -40.0, -3.0, 70.4, 40.0, 1.0]  # OpenPCDet KITTI
+VOXEL_SIZE = [0.05, 0.05, 0.1]
+CHANNELS = {"x_conv1": (16, 1), "x_conv2": (32, 2), "x_conv3": (64, 4), "x_conv4": (64, 8)}
+
+
+def synthetic_frame(n: int, device, seed: int = 0) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(POINT_CLOUD_RANGE[3:])
+    xyz = lo + torch.rand(n, 3, generator=g) * (hi - lo) * 0.999
+    points = torch.cat([torch.zeros(n, 1), xyz, torch.rand(n, 1, generator=g)], dim=1)
+    grid = ((hi - lo) / torch.tensor(VOXEL_SIZE)).round().long().tolist()
+    maps = {}
+    for name, (c, stride) in CHANNELS.items():
+        v = ((xyz - lo) / (torch.tensor(VOXEL_SIZE) * stride)).floor().int()
+        coords = torch.unique(torch.cat([torch.zeros(n, 1, dtype=torch.int32), v], dim=1), dim=0)
+        shape = [max(1, -(-s // stride)) for s in grid]
+        maps[name] = SparseTensor(torch.randn(coords.shape[0], c, generator=g), coords, shape, 1).to(device)
+    bev = torch.randn(1, 256, grid[1] // 8, grid[0] // 8, generator=g)
+    rois = torch.cat([lo + torch.rand(128, 3, generator=g) * (hi - lo),
+                      torch.tensor([3.9, 1.6, 1.56]).expand(128, 3), torch.rand(128, 1, generator=g) * 3.14], 1)
+    gt = torch.cat([rois[:8, :7], torch.ones(8, 1)], dim=1)[None]
+    return {"batch_size": 1, "points": points.to(device), "multi_scale_3d_features": maps,
+            "spatial_features": bev.to(device), "spatial_features_stride": 8,
+            "rois": rois[None].to(device), "gt_boxes": gt.to(device)}
+
+
+def timed(fn, repeats: int, device) -> float:
+    times = []
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=20000)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    torch.manual_seed(0)
+    model = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())["MODEL"]
+    vsa = VoxelSetAbstraction(model["PFE"], VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=256,
+                              num_rawpoint_features=4).to(device).train()
+    head = PointHeadSimple(1, vsa.num_point_features_before_fusion, model["POINT_HEAD"]).to(device).train()
+    pool_cfg = model["ROI_HEAD"]["ROI_GRID_POOL"]
+    pool, _ = build_local_aggregation_module(vsa.num_point_features, pool_cfg)
+    pool = pool.to(device).train()
+    frame = synthetic_frame(args.points, device)
+
+    def forward():
+        batch = head(vsa(dict(frame)))
+        feats = batch["point_features"] * batch["point_cls_scores"][:, None]
+        grid = roi_grid_points(batch["rois"][0], int(pool_cfg["GRID_SIZE"])).reshape(-1, 3)
+        _, pooled = pool(batch["point_coords"][:, 1:4].contiguous(), batch_counts(batch["point_coords"][:, 0], 1),
+                         grid, torch.tensor([grid.shape[0]], dtype=torch.int32, device=device), feats)
+        return head.get_loss()[0] + pooled.sum()
+
+    def backward():
+        forward().backward()
+
+    forward()  # warm-up
+    with torch.no_grad():
+        t_fwd = timed(forward, args.repeats, device)
+    t_bwd = timed(backward, args.repeats, device)
+    print(f"device {device}, {args.points} points, {model['PFE']['NUM_KEYPOINTS']} keypoints, 128 RoIs x "
+          f"{int(pool_cfg['GRID_SIZE']) ** 3} grid points, torch threads {torch.get_num_threads()}")
+    print(f"VSA + keypoint head + RoI-grid pooling: forward {t_fwd:.3f} s, forward+backward {t_bwd:.3f} s "
+          f"(median of {args.repeats})")
+
+
+if __name__ == "__main__":
+    main()
