@@ -215,3 +215,20 @@ def test_roi_grid_points_cell_centres_rotated_with_the_box():
     assert torch.allclose(grid[0, 4], torch.tensor([2.0, 1.5, 2.5]))
     # heading 90 deg: local +x (length) points along world +y
     assert torch.allclose(grid[1, 4], torch.tensor([0.5, 1.0, -0.5]), atol=1e-6)
+
+
+def test_voxel_set_abstraction_accepts_voxels_not_grouped_by_sample():
+    torch.manual_seed(0)
+    vsa = VoxelSetAbstraction(vsa_config(), VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=5,
+                              num_rawpoint_features=4).eval()
+    batch = vsa_batch()
+    expected = vsa(dict(batch))["point_features"]
+    # interleave the samples' voxels, keeping each sample's own order (spconv need not group them)
+    conv1 = batch["multi_scale_3d_features"]["x_conv1"]
+    b = conv1.coords[:, 0].long()
+    rank = torch.cat([torch.arange(int((b == k).sum())) for k in range(2)])
+    order = torch.argsort(rank * 2 + b, stable=True)
+    assert not torch.equal(b[order], b.sort().values)
+    batch["multi_scale_3d_features"]["x_conv1"] = SparseTensor(conv1.feats[order], conv1.coords[order],
+                                                                conv1.spatial_shape, 2)
+    assert torch.allclose(vsa(dict(batch))["point_features"], expected, atol=1e-6)
