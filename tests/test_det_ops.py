@@ -12,8 +12,11 @@ from hypothesis import strategies as st
 
 from omnilidar.downstream.det.ops import iou
 
-shapely = pytest.importorskip("shapely")
-from shapely.geometry import Polygon  # noqa: E402
+try:  # test-only reference geometry (the "test" extra)
+    from shapely.geometry import Polygon
+except ImportError:  # pragma: no cover - e.g. on a bare GPU machine
+    Polygon = None
+needs_shapely = pytest.mark.skipif(Polygon is None, reason="shapely (test extra) is not installed")
 
 
 def _random_boxes(gen: torch.Generator, n: int, spread: float = 3.0) -> torch.Tensor:
@@ -38,6 +41,7 @@ def _shapely_overlap_bev(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
 # ---------------------------------------------------------------- IoU
 
 
+@needs_shapely
 def test_bev_overlap_matches_shapely():
     gen = torch.Generator().manual_seed(0)
     a, b = _random_boxes(gen, 40), _random_boxes(gen, 50)
@@ -49,6 +53,7 @@ def test_bev_overlap_matches_shapely():
     np.testing.assert_allclose(iou.boxes_iou_bev(a, b).numpy(), want / union.numpy(), atol=1e-9)
 
 
+@needs_shapely
 def test_iou3d_is_bev_overlap_times_height_overlap():
     gen = torch.Generator().manual_seed(1)
     a, b = _random_boxes(gen, 30), _random_boxes(gen, 20)
@@ -63,6 +68,7 @@ def test_iou3d_is_bev_overlap_times_height_overlap():
     assert (want > 0).any()
 
 
+@needs_shapely
 def test_rotated_overlap_2d_turns_clockwise_like_kitti_eval():
     gen = torch.Generator().manual_seed(2)
     a = torch.cat([torch.rand(25, 2, generator=gen) * 4, 0.5 + 3 * torch.rand(25, 2, generator=gen),
@@ -116,6 +122,7 @@ def test_half_turns_and_quarter_turned_squares_are_the_same_rectangle(dtype):
     torch.testing.assert_close(iou.boxes_iou3d(square, square), torch.ones(2, 2, dtype=dtype), atol=tol, rtol=0)
 
 
+@needs_shapely
 def test_nearly_parallel_boxes_far_from_origin_match_the_same_pair_at_origin():
     near = torch.tensor([[0.0, 0.0, 0.0, 4.2, 1.8, 1.5, 0.0], [0.05, 0.02, 0.0, 4.2, 1.8, 1.5, 1e-5],
                          [0.0, 1.8, 0.0, 4.2, 1.8, 1.5, 0.0]], dtype=torch.float64)
@@ -198,6 +205,51 @@ def test_iou_properties(rows_a, rows_b):
     assert (iou.boxes_iou3d(a, b_tall) <= iou.boxes_iou_bev(a, b_tall) + 1e-12).all()
 
 
+
+_near = st.floats(-1e-3, 1e-3, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.floats(-math.pi, math.pi, **_finite), st.floats(0.3, 5, **_finite), st.floats(0.3, 3, **_finite),
+       st.sampled_from([0.0, 0.5, 1.0, 2.0]), st.sampled_from([0.0, 1.0]), _near, _near, _near)
+def test_nearly_parallel_and_edge_sharing_pairs_are_shift_invariant(heading, dx, dy, along, across, eps_h, eps_x, eps_y):
+    """b is a slid along its own axes by a fraction of its size (shared edges at
+    1.0), nudged by up to 1e-3; the IoU must not depend on where the pair sits."""
+    c, s_ = math.cos(heading), math.sin(heading)
+    sx, sy = along * dx + eps_x, across * dy + eps_y
+    a = [0.0, 0.0, 0.0, dx, dy, 1.0, heading]
+    b = [c * sx - s_ * sy, s_ * sx + c * sy, 0.0, dx, dy, 1.0, heading + eps_h]
+    near = torch.tensor([a, b], dtype=torch.float64)
+    far = near.clone()
+    far[:, 0] += 1e4
+    far[:, 1] -= 3e4
+    want = iou.boxes_iou_bev(near, near)
+    got = iou.boxes_iou_bev(far, far)
+    assert torch.isfinite(got).all() and ((got >= 0) & (got <= 1 + 1e-12)).all()
+    torch.testing.assert_close(got, want, atol=1e-9, rtol=0)
+    torch.testing.assert_close(torch.diagonal(got), torch.ones(2, dtype=torch.float64), atol=1e-12, rtol=0)
+    if Polygon is not None:
+        inter = _shapely_overlap_bev(near, near)[0, 1]
+        assert abs(float(iou.boxes_overlap_bev(near, near)[0, 1]) - inter) < 1e-9
+
+
+def test_chunked_evaluation_gives_the_same_answers(monkeypatch):
+    gen = torch.Generator().manual_seed(11)
+    a, b = _random_boxes(gen, 70, 5.0), _random_boxes(gen, 50, 5.0)
+    whole = iou.boxes_iou_bev(a, b)
+    ia, ib, pairs = iou.iou_bev_self_pairs(a)
+    monkeypatch.setattr(iou, "_PREFILTER_CHUNK", {"cpu": 7 * 50})  # 7 rows per block, ragged end
+    monkeypatch.setattr(iou, "_PAIR_CHUNK", {"cpu": 13})
+    assert torch.equal(iou.boxes_iou_bev(a, b), whole)
+    ja, jb, chunked = iou.iou_bev_self_pairs(a)
+    assert (ja < jb).all() and len(set(zip(ja.tolist(), jb.tolist()))) == len(ja)
+    dense = iou.boxes_iou_bev(a, a)
+    torch.testing.assert_close(chunked, dense[ja, jb], atol=1e-12, rtol=0)
+    # Every overlapping pair i < j is listed, chunked or not.
+    assert sorted(zip(ja.tolist(), jb.tolist())) == sorted(zip(ia.tolist(), ib.tolist()))
+    assert {(i, j) for i, j in (torch.triu(dense, 1) > 0).nonzero().tolist()} <= set(zip(ja.tolist(), jb.tolist()))
+
+
 # ---------------------------------------------------------------- NMS
 
 from omnilidar.downstream.det.ops import nms  # noqa: E402
@@ -257,6 +309,7 @@ def test_class_agnostic_and_multi_class_nms_follow_openpcdet():
 # ---------------------------------------------------------------- points in boxes
 
 from omnilidar.downstream.det.ops import points as det_points  # noqa: E402
+from omnilidar.lidar.boxes import box_corners  # noqa: E402
 
 
 def test_points_in_boxes_match_a_per_pair_loop():
@@ -288,6 +341,32 @@ def test_points_on_faces_count_and_empty_inputs():
     assert det_points.points_in_boxes(pts, box[:0]).tolist() == [-1] * 5
     with pytest.raises(ValueError, match="boxes must be"):
         det_points.points_in_boxes(pts, box[:, :6])
+
+
+def _dense_inside(pts: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    ox = pts[:, None, 0] - boxes[None, :, 0]
+    oy = pts[:, None, 1] - boxes[None, :, 1]
+    c, s_ = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    return ((np.abs(ox * c + oy * s_) <= boxes[:, 3] / 2) & (np.abs(oy * c - ox * s_) <= boxes[:, 4] / 2)
+            & (np.abs(pts[:, None, 2] - boxes[None, :, 2]) <= boxes[:, 5] / 2))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 1e4, -3e4]), st.integers(1, 60), st.floats(0.0, 1.0))
+def test_points_in_boxes_never_miss_a_point(seed, offset, n_boxes, zero_fraction):
+    """Sorted-strip candidate search against a dense float64 test, with points on
+    faces and corners, zero-size boxes, boxes away from every point, far offsets."""
+    rng = np.random.default_rng(seed)
+    boxes = np.column_stack([rng.uniform(-12, 12, (n_boxes, 3)), rng.uniform(0.1, 6, (n_boxes, 3)),
+                             rng.uniform(-4, 4, n_boxes)])
+    boxes[rng.random(n_boxes) < zero_fraction * 0.3, 3:6] = 0.0
+    boxes[rng.random(n_boxes) < 0.1, 0] += 100.0  # far from all points
+    corners = np.concatenate([box_corners(boxes[:, :7]).reshape(-1, 3), boxes[:, :3]])
+    pts = np.concatenate([rng.uniform(-15, 15, (400, 3)), corners])
+    pts[:, :2] += offset
+    boxes[:, :2] += offset
+    got = det_points.points_in_boxes_mask(torch.from_numpy(pts), torch.from_numpy(boxes)).numpy()
+    np.testing.assert_array_equal(got, _dense_inside(pts, boxes))
 
 
 # ---------------------------------------------------------------- sampling and grouping
@@ -340,6 +419,39 @@ def test_ball_query_matches_a_brute_force_loop():
         want = (hits + [hits[0]] * 5)[:5] if hits else [0] * 5
         assert idx[m].tolist() == want and bool(empty[m]) == (not hits)
     assert empty[20:35].all() and (~empty).sum() > 10 and (idx[~empty][:, 0] != idx[~empty][:, -1]).any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 500.0, -4e3]), st.sampled_from([0.3, 1.0, 2.5]),
+       st.integers(1, 40), st.lists(st.integers(0, 120), min_size=1, max_size=3))
+def test_ball_query_matches_a_dense_reference(seed, offset, radius, nsample, counts):
+    """Strip-search ball query against all pairs, with points exactly at the radius,
+    duplicates and samples without points."""
+    rng = np.random.default_rng(seed)
+    n = sum(counts)
+    pts = rng.uniform(-4, 4, (n, 3)).astype(np.float32)
+    centres_per = [int(rng.integers(0, 30)) for _ in counts]
+    ctr = rng.uniform(-4, 4, (sum(centres_per), 3)).astype(np.float32)
+    if n > 3:
+        pts[1] = pts[0]  # duplicate point
+        pts[2] = pts[0] + np.float32([radius, 0, 0])  # exactly on a radius (of a centre at pts[0])
+    if len(ctr):
+        ctr[0] = pts[0] if n and counts[0] else ctr[0]
+    pts[:, :2] += offset
+    ctr[:, :2] += offset
+    xyz, new_xyz = torch.from_numpy(pts), torch.from_numpy(ctr)
+    idx, empty = sampling.ball_query(radius, nsample, xyz, torch.tensor(counts), new_xyz, torch.tensor(centres_per))
+    r2 = float(torch.tensor(radius, dtype=torch.float32) ** 2)
+    p0 = c0 = 0
+    for cnt, ccnt in zip(counts, centres_per):
+        block, centres = xyz[p0:p0 + cnt], new_xyz[c0:c0 + ccnt]
+        d2 = ((centres[:, None, 0] - block[None, :, 0]) ** 2 + (centres[:, None, 1] - block[None, :, 1]) ** 2
+              + (centres[:, None, 2] - block[None, :, 2]) ** 2)
+        for m, row in enumerate((d2 < r2).tolist()):
+            hits = [k for k, h in enumerate(row) if h][:nsample]
+            want = (hits + [hits[0]] * nsample)[:nsample] if hits else [0] * nsample
+            assert idx[c0 + m].tolist() == want and bool(empty[c0 + m]) == (not hits)
+        p0, c0 = p0 + cnt, c0 + ccnt
 
 
 def test_grouping_and_query_and_group():
@@ -415,3 +527,33 @@ def test_voxel_query_matches_the_scan_order_of_voxel_rcnn():
     flat = torch.where(empty[:, None], start, idx)  # empty balls group local point 0
     assert torch.equal(g_feats, feats[flat].permute(0, 2, 1))
     assert torch.equal(g_xyz, xyz[flat].permute(0, 2, 1))
+
+
+
+# ---------------------------------------------------------------- devices
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_every_operator_gives_the_same_answer_on_cuda():
+    gen = torch.Generator().manual_seed(10)
+    a, b = _random_boxes(gen, 200, 8.0).float(), _random_boxes(gen, 150, 8.0).float()
+    cuda = torch.device("cuda")
+    for fn in (iou.boxes_iou_bev, iou.boxes_iou3d, iou.boxes_overlap_bev, iou.boxes_iou_bev_nearest):
+        got = fn(a.to(cuda), b.to(cuda))
+        assert got.device.type == "cuda"
+        torch.testing.assert_close(got.cpu(), fn(a, b), atol=1e-6, rtol=0)
+    rects = a[:, [0, 1, 3, 4, 6]]
+    torch.testing.assert_close(iou.rotated_overlap_2d(rects.to(cuda), rects.to(cuda)).cpu(),
+                               iou.rotated_overlap_2d(rects, rects), atol=1e-5, rtol=0)
+    scores = torch.rand(200, generator=gen)
+    assert torch.equal(nms.nms_rotated(a.to(cuda), scores.to(cuda), 0.2, 150, 60).cpu(),
+                       nms.nms_rotated(a, scores, 0.2, 150, 60))
+    pts = (torch.rand(5000, 3, generator=gen) - 0.5) * 16
+    assert torch.equal(det_points.points_in_boxes(pts.to(cuda), a.to(cuda)).cpu(), det_points.points_in_boxes(pts, a))
+    xyz = torch.rand(2, 700, 3, generator=gen) * 10
+    assert torch.equal(sampling.farthest_point_sample(xyz.to(cuda), 64).cpu(), sampling.farthest_point_sample(xyz, 64))
+    flat, cnt, centres, ccnt = xyz.reshape(-1, 3), torch.tensor([700, 700]), xyz[:, :50].reshape(-1, 3), torch.tensor([50, 50])
+    want = sampling.query_and_group(0.8, 16, flat, cnt, centres, ccnt, flat * 2)
+    got = sampling.query_and_group(0.8, 16, flat.to(cuda), cnt.to(cuda), centres.to(cuda), ccnt.to(cuda), flat.to(cuda) * 2)
+    for g, w in zip(got, want):
+        torch.testing.assert_close(g.cpu(), w)

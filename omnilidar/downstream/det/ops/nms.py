@@ -61,7 +61,7 @@ def nms_rotated(boxes: torch.Tensor, scores: torch.Tensor, thresh: float,
     if boxes.ndim != 2 or boxes.shape[1] < 7 or scores.shape != boxes.shape[:1]:
         raise ValueError(f"nms needs boxes (N, 7) and scores (N,), got {tuple(boxes.shape)} and {tuple(scores.shape)}")
     order = _score_order(scores, pre_max_size)
-    ia, ib, iou = iou_bev_self_pairs(boxes[order, :7], axis_aligned=axis_aligned)
+    ia, ib, iou = iou_bev_self_pairs(boxes[order, :7], axis_aligned=axis_aligned, above=thresh)
     keep = _greedy_keep(len(order), ia, ib, iou, thresh, post_max_size)
     return order[torch.from_numpy(keep).to(order.device)]
 

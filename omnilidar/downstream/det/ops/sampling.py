@@ -7,16 +7,24 @@ their sample (0 .. N_b - 1); voxel-query indices are whatever the voxel -> point
 map holds (global there). Empty neighbourhoods come back as index 0 with
 ``empty_ball_mask`` set, exactly as the CUDA ops return them.
 
-Queries are vectorised over centres and candidates in chunks of at most
-``_CHUNK`` pairs, so memory stays bounded for tens of thousands of centres.
+Everything is vectorised, in chunks of bounded size: ball queries look only at
+the points near each centre (a sorted-strip search shared with points in
+boxes), voxel queries at the voxels of each centre's window.
 """
 
 from __future__ import annotations
 
+import itertools
+
 import torch
 from torch import nn
 
-_CHUNK = 1 << 22  # (centres x candidates) pairs per vectorised batch
+from omnilidar.downstream.det.ops.points import pairs_within_squares
+
+# (centre, window voxel) pairs per voxel-query batch: ~80 MB of scratch on CPU.
+_CHUNK = {"cpu": 1 << 20}
+_CHUNK_DEFAULT = 1 << 23
+_SQUARE_MARGIN = 1e-3  # m added to the candidate squares; the distance test decides
 
 
 def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
@@ -36,14 +44,15 @@ def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
     x, y, z = (xyz[..., k].contiguous() for k in range(3))
     nearest = torch.full((b, n), 1e10, dtype=xyz.dtype, device=xyz.device)
     rows = torch.arange(b, device=xyz.device)
-    last = torch.zeros(b, dtype=torch.long, device=xyz.device)
-    for j in range(1, npoint):
-        px, py, pz = x[rows, last, None], y[rows, last, None], z[rows, last, None]
-        d = (x - px) * (x - px) + (y - py) * (y - py) + (z - pz) * (z - pz)
-        nearest = torch.minimum(nearest, d)
+    last = out[:, 0]
+    picks = [last]
+    for _ in range(1, npoint):
+        p = xyz[rows, last]  # (B, 3) the point chosen last
+        dx, dy, dz = x - p[:, 0:1], y - p[:, 1:2], z - p[:, 2:3]
+        torch.minimum(nearest, dx * dx + dy * dy + dz * dz, out=nearest)
         last = torch.argmax(nearest, dim=1)
-        out[:, j] = last
-    return out
+        picks.append(last)
+    return torch.stack(picks, dim=1)
 
 
 def _first_hits(hit: torch.Tensor, values: torch.Tensor, nsample: int):
@@ -51,32 +60,44 @@ def _first_hits(hit: torch.Tensor, values: torch.Tensor, nsample: int):
     ``nsample`` hits in column order, padded with the first hit's value.
     Returns (idx (R, nsample) long, empty (R,) bool); empty rows give 0."""
     k = hit.shape[1]
-    cols = torch.arange(k, device=hit.device)
-    key = torch.where(hit, cols, k)
-    take = min(nsample, k)
-    first = torch.topk(key, take, dim=1, largest=False, sorted=True).values if k else key[:, :0]
-    if take < nsample:  # fewer candidates than samples: pad the columns
-        first = torch.cat([first, first.new_full((len(first), nsample - take), k)], dim=1)
-    found = first < k
-    empty = ~found[:, 0] if nsample else torch.ones(len(hit), dtype=torch.bool, device=hit.device)
-    picked = torch.gather(values, 1, first.clamp(max=max(k - 1, 0))) if k else first.new_zeros(first.shape)
-    picked = torch.where(found, picked, picked[:, :1])
-    return torch.where(empty[:, None], torch.zeros_like(picked), picked), empty
+    key = torch.where(hit, torch.arange(k, device=hit.device), k)
+    first = torch.topk(key, min(nsample, k), dim=1, largest=False, sorted=True).values
+    if first.shape[1] < nsample:  # fewer candidates than samples: pad the columns
+        first = torch.cat([first, first.new_full((len(first), nsample - first.shape[1]), k)], dim=1)
+    picked = torch.gather(values, 1, first.clamp(max=k - 1))
+    picked = torch.where(first < k, picked, picked[:, :1])
+    empty = ~hit.any(dim=1)
+    return torch.where(empty[:, None], 0, picked), empty
 
 
 def _batch_starts(counts: torch.Tensor) -> list[int]:
-    c = counts.tolist()
-    return [sum(c[:i]) for i in range(len(c) + 1)]
+    return list(itertools.accumulate(counts.tolist(), initial=0))
+
+
+def _first_in_index_order(ip: torch.Tensor, ic: torch.Tensor, n: int, m: int, nsample: int):
+    """From hit pairs (point ip, centre ic), each centre's ``nsample`` lowest point
+    indices, padded with its first; (idx (m, nsample), empty (m,)), empty rows 0."""
+    key, _ = torch.sort(ic * max(n, 1) + ip)
+    ic, ip = key // max(n, 1), key % max(n, 1)
+    counts = torch.bincount(ic, minlength=m)
+    rank = torch.arange(len(key), device=key.device) - (torch.cumsum(counts, 0) - counts)[ic]
+    keep = rank < nsample
+    idx = torch.zeros(m, nsample, dtype=torch.long, device=key.device)
+    idx[ic[keep], rank[keep]] = ip[keep]
+    filled = torch.arange(nsample, device=key.device) < counts[:, None]
+    return torch.where(filled, idx, idx[:, :1]), counts == 0
 
 
 def ball_query(radius: float, nsample: int, xyz: torch.Tensor, xyz_batch_cnt: torch.Tensor,
                new_xyz: torch.Tensor, new_xyz_batch_cnt: torch.Tensor):
     """Stack ball query: for each centre of ``new_xyz`` (M, 3), the first ``nsample``
-    points of its own sample, in index order, with squared distance < radius^2.
+    points of its own sample, in index order, with squared distance < radius^2
+    (computed in the input dtype, as the CUDA kernel).
 
     Returns (idx (M, nsample) long, local to the sample; empty_ball_mask (M,) bool).
     A ball with fewer points repeats its first one; an empty ball gives zeros
-    and sets the mask.
+    and sets the mask. Candidates come from a sorted-strip search around each
+    centre (``points.pairs_within_squares``), not from all N x M pairs.
     """
     if len(xyz_batch_cnt) != len(new_xyz_batch_cnt):
         raise ValueError("xyz_batch_cnt and new_xyz_batch_cnt must have one count per sample")
@@ -86,18 +107,25 @@ def ball_query(radius: float, nsample: int, xyz: torch.Tensor, xyz_batch_cnt: to
                          f"got {len(xyz)} / {len(new_xyz)}")
     idx = torch.zeros(len(new_xyz), nsample, dtype=torch.long, device=new_xyz.device)
     empty = torch.ones(len(new_xyz), dtype=torch.bool, device=new_xyz.device)
-    r2 = radius * radius
+    r = torch.tensor(radius, dtype=xyz.dtype)
+    r2 = (r * r).item()  # squared in the input dtype, as the kernel does
     for b in range(len(p_start) - 1):
-        pts = xyz[p_start[b]:p_start[b + 1]]
-        n = len(pts)
-        rows = max(1, _CHUNK // max(n, 1))
-        local = torch.arange(n, device=xyz.device)
-        for c0 in range(c_start[b], c_start[b + 1], rows):
-            c1 = min(c_start[b + 1], c0 + rows)
-            ctr = new_xyz[c0:c1]
-            d2 = ((ctr[:, None, 0] - pts[None, :, 0]) ** 2 + (ctr[:, None, 1] - pts[None, :, 1]) ** 2
-                  + (ctr[:, None, 2] - pts[None, :, 2]) ** 2)
-            idx[c0:c1], empty[c0:c1] = _first_hits(d2 < r2, local.expand(c1 - c0, n), nsample)
+        pts, ctr = xyz[p_start[b]:p_start[b + 1]], new_xyz[c_start[b]:c_start[b + 1]]
+        if len(pts) == 0 or len(ctr) == 0:
+            continue
+        reach = torch.full((len(ctr),), radius * (1 + 1e-6) + _SQUARE_MARGIN, dtype=torch.float64,
+                           device=ctr.device)
+        hits_p, hits_c = [], []
+        for ip, ic in pairs_within_squares(pts, ctr[:, :2].to(torch.float64), reach):
+            d2 = ((ctr[ic, 0] - pts[ip, 0]) ** 2 + (ctr[ic, 1] - pts[ip, 1]) ** 2
+                  + (ctr[ic, 2] - pts[ip, 2]) ** 2)
+            hit = d2 < r2
+            hits_p.append(ip[hit])
+            hits_c.append(ic[hit])
+        if hits_p:
+            rows = slice(c_start[b], c_start[b + 1])
+            idx[rows], empty[rows] = _first_in_index_order(torch.cat(hits_p), torch.cat(hits_c),
+                                                           len(pts), len(ctr), nsample)
     return idx, empty
 
 
@@ -170,8 +198,9 @@ def voxel_query(max_range, radius: float, nsample: int, xyz: torch.Tensor, new_x
     size = torch.tensor([nz, ny, nx], device=dev)
     idx = torch.zeros(len(new_xyz), nsample, dtype=torch.long, device=dev)
     empty = torch.ones(len(new_xyz), dtype=torch.bool, device=dev)
-    r2 = radius * radius
-    rows = max(1, _CHUNK // k)
+    r = torch.tensor(radius, dtype=xyz.dtype)
+    r2 = (r * r).item()  # squared in the input dtype, as the kernel does
+    rows = max(1, _CHUNK.get(dev.type, _CHUNK_DEFAULT) // k)
     for c0 in range(0, len(new_xyz), rows):
         c1 = min(len(new_xyz), c0 + rows)
         coords = new_coords[c0:c1].long()
