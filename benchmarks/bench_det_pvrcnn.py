@@ -20,10 +20,10 @@ from pathlib import Path
 import torch
 import yaml
 
-from omnilidar.downstream.det.models.dense_heads.point_head_simple import PointHeadSimple
-from omnilidar.downstream.det.models.pfe.voxel_set_abstraction import VoxelSetAbstraction
+from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import batch_counts, build_local_aggregation_module
-from omnilidar.downstream.det.models.roi_heads.roi_grid import roi_grid_points
+from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
+from omnilidar.downstream.det.models.voxel_set_abstraction import VoxelSetAbstraction
 from omnilidar.sparse.tensor import SparseTensor
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -86,7 +86,7 @@ def main() -> None:
     def forward():
         batch = head(vsa(dict(frame)))
         feats = batch["point_features"] * batch["point_cls_scores"][:, None]
-        grid = roi_grid_points(batch["rois"][0], int(pool_cfg["GRID_SIZE"])).reshape(-1, 3)
+        grid = VoxelRCNNHead.grid_points_of_rois(batch["rois"][0], int(pool_cfg["GRID_SIZE"])).reshape(-1, 3)
         _, pooled = pool(batch["point_coords"][:, 1:4].contiguous(), batch_counts(batch["point_coords"][:, 0], 1),
                          grid, torch.tensor([grid.shape[0]], dtype=torch.int32, device=device), feats)
         return head.get_loss()[0] + pooled.sum()

@@ -8,14 +8,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from omnilidar.downstream.det.models.dense_heads.point_head_simple import PointHeadSimple
-from omnilidar.downstream.det.models.pfe.voxel_set_abstraction import (
-    VoxelSetAbstraction,
-    bilinear_interpolate,
-    voxel_centers,
-)
+from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import StackSAModuleMSG
-from omnilidar.downstream.det.models.roi_heads.roi_grid import roi_grid_points
+from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
+from omnilidar.downstream.det.models.voxel_set_abstraction import VoxelSetAbstraction, bilinear_interpolate
 from omnilidar.sparse.tensor import SparseTensor
 
 POINT_CLOUD_RANGE = [0.0, -4.0, -2.0, 8.0, 4.0, 2.0]
@@ -32,12 +28,13 @@ def random_points(batch_size: int, n: int, seed: int) -> torch.Tensor:
 
 
 def sparse_map(points: torch.Tensor, channels: int, stride: int, batch_size: int, seed: int) -> SparseTensor:
-    """Occupied voxels of ``points`` at ``stride`` with random features (coords batch, x, y, z)."""
+    """Occupied voxels of ``points`` at ``stride`` with random features; rows batch, z, y, x
+    on a (Z, Y, X) grid, as the detection backbone lays them out."""
     g = torch.Generator().manual_seed(seed)
     origin, size = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(VOXEL_SIZE) * stride
-    xyz = ((points[:, 1:4] - origin) / size).floor().int()
-    coords = torch.unique(torch.cat([points[:, :1].int(), xyz], dim=1), dim=0)
-    grid = [math.ceil(80 / stride), math.ceil(80 / stride), math.ceil(20 / stride)]
+    zyx = ((points[:, 1:4] - origin) / size).floor().int()[:, [2, 1, 0]]
+    coords = torch.unique(torch.cat([points[:, :1].int(), zyx], dim=1), dim=0)
+    grid = [math.ceil(20 / stride), math.ceil(80 / stride), math.ceil(80 / stride)]
     return SparseTensor(torch.randn(coords.shape[0], channels, generator=g), coords, grid, batch_size)
 
 
@@ -150,11 +147,6 @@ def test_voxel_set_abstraction_rejects_a_mismatched_backbone_width():
         vsa(batch)
 
 
-def test_voxel_centers_of_a_downsampled_level():
-    centres = voxel_centers(torch.tensor([[1, 2, 3]]), 2, VOXEL_SIZE, POINT_CLOUD_RANGE)
-    assert torch.allclose(centres, torch.tensor([[0.0 + 3.5 * 0.2, -4.0 + 2.5 * 0.2, -2.0 + 1.5 * 0.4]]))
-
-
 def point_head(num_class: int) -> PointHeadSimple:
     cfg = {"NAME": "PointHeadSimple", "CLS_FC": [8], "CLASS_AGNOSTIC": num_class == 1,
            "USE_POINT_FEATURES_BEFORE_FUSION": True, "TARGET_CONFIG": {"GT_EXTRA_WIDTH": [0.2, 0.2, 0.2]},
@@ -206,7 +198,7 @@ def test_point_head_focal_loss_and_scores():
 
 def test_roi_grid_points_cell_centres_rotated_with_the_box():
     rois = torch.tensor([[1.0, 2.0, 3.0, 4.0, 2.0, 2.0, 0.0], [0.0, 0.0, 0.0, 4.0, 2.0, 2.0, math.pi / 2]])
-    grid = roi_grid_points(rois, 2)
+    grid = VoxelRCNNHead.grid_points_of_rois(rois, 2)  # PV-RCNN's flattening order relies on it
     assert grid.shape == (2, 8, 3)
     # x-major order: (ix, iy, iz) = (0,0,0), (0,0,1), (0,1,0), ... ; cell centres at +-size/4
     assert torch.allclose(grid[0, 0], torch.tensor([0.0, 1.5, 2.5]))
@@ -232,3 +224,25 @@ def test_voxel_set_abstraction_accepts_voxels_not_grouped_by_sample():
     batch["multi_scale_3d_features"]["x_conv1"] = SparseTensor(conv1.feats[order], conv1.coords[order],
                                                                 conv1.spatial_shape, 2)
     assert torch.allclose(vsa(dict(batch))["point_features"], expected, atol=1e-6)
+
+
+def test_voxel_set_abstraction_pools_voxels_at_their_metric_centres():
+    torch.manual_seed(0)
+    cfg = vsa_config(num_keypoints=3)
+    cfg["FEATURES_SOURCE"] = ["x_conv1"]
+    vsa = VoxelSetAbstraction(cfg, VOXEL_SIZE, POINT_CLOUD_RANGE, num_rawpoint_features=4).eval()
+    points = torch.tensor([[0, 1.01, -3.55, 0.3, 0.5], [0, 6.22, 2.71, -1.5, 0.1], [0, 3.33, 0.04, 1.7, 0.9]])
+    conv1 = sparse_map(points, 4, 1, 1, seed=6)
+    out = vsa({"batch_size": 1, "points": points, "multi_scale_3d_features": {"x_conv1": conv1}})
+    # the voxel centres by hand: cell corner + half a cell, x/y 0.1 m and z 0.2 m cells
+    origin, size = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(VOXEL_SIZE)
+    centres = (((points[:, 1:4] - origin) / size).floor() + 0.5) * size + origin
+    # match each point's voxel row by its (z, y, x) index
+    zyx = ((points[:, 1:4] - origin) / size).floor().int()[:, [2, 1, 0]]
+    rows = [int(((conv1.coords[:, 1:4] == zyx[i]).all(dim=1)).nonzero()[0, 0]) for i in range(3)]
+    cnt = torch.tensor([3], dtype=torch.int32)
+    _, expected = vsa.SA_layers[0](centres, cnt, out["point_coords"][:, 1:4], cnt, conv1.feats[rows])
+    assert torch.allclose(out["point_features_before_fusion"], expected, atol=1e-6)
+    # and the keypoints do find their voxel (not the empty-ball response)
+    _, empty = vsa.SA_layers[0](centres + 50, cnt, out["point_coords"][:, 1:4], cnt, conv1.feats[rows])
+    assert not torch.allclose(expected, empty, atol=1e-3)
