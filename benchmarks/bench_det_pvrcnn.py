@@ -74,7 +74,7 @@ def main() -> None:
     args = parser.parse_args()
     device = torch.device(args.device)
     torch.manual_seed(0)
-    model = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())["MODEL"]
+    model = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())["paper"]
     vsa = VoxelSetAbstraction(model["PFE"], VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=256,
                               num_rawpoint_features=4).to(device).train()
     head = PointHeadSimple(1, vsa.num_point_features_before_fusion, model["POINT_HEAD"]).to(device).train()

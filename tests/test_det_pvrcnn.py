@@ -366,3 +366,27 @@ def test_pv_rcnn_fits_one_batch():
         point_losses.append(tb["point_loss_cls"])
     assert sum(losses[-3:]) < 0.8 * sum(losses[:3]), losses
     assert point_losses[-1] < 0.5 * point_losses[0], point_losses  # the keypoint head learns
+
+
+def test_pvrcnn_head_flattens_the_pooled_grid_channel_major():
+    """shared_fc_layer.0 sees column c * G^3 + g for channel c at grid cell g (OpenPCDet's
+    layout, which its checkpoints' first shared FC weights assume)."""
+    torch.manual_seed(0)
+    cfg = tiny_model_config()
+    model = build_detector(cfg, 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL).eval()
+    head = model.roi_head
+    g3, c = 6 ** 3, 32
+    pooled = torch.zeros(1, g3, c)
+    pooled[0, 5, 3] = 1.0  # grid cell 5, channel 3
+    head.roi_grid_pool = lambda batch_dict: pooled
+    first = head.shared_fc_layer[0]
+    with torch.no_grad():
+        first.weight.zero_()
+        first.weight[0, 3 * g3 + 5, 0] = 2.0
+    seen = {}
+    first.register_forward_hook(lambda m, i, o: seen.setdefault("out", o))
+    batch = {"batch_size": 1, "rois": torch.tensor([[[5.0, 0, 0, 4, 2, 1.5, 0]]]),
+             "roi_labels": torch.ones(1, 1, dtype=torch.long), "roi_scores": torch.ones(1, 1)}
+    with torch.no_grad():
+        head(batch)
+    assert seen["out"][0, 0, 0] == 2.0 and seen["out"][0, 1:].abs().sum() == 0

@@ -8,6 +8,9 @@ foreground (class 1 when class-agnostic, else the box's class); a keypoint insid
 the box enlarged by ``GT_EXTRA_WIDTH`` but not the box itself is ignored; all
 others are background. Loss: sigmoid focal loss (alpha 0.25, gamma 2) summed and
 normalised by the number of foreground keypoints.
+
+Zero-padded gt rows (class 0) are skipped. OpenPCDet enlarges them too, into
+GT_EXTRA_WIDTH-sized boxes at the origin whose keypoints it then ignores.
 """
 
 from __future__ import annotations
