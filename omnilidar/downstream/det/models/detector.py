@@ -12,6 +12,8 @@ import math
 import torch
 from torch import nn
 
+from omnilidar.errors import InputError
+
 from omnilidar.downstream.det.models.backbone_2d import BaseBEVBackbone
 from omnilidar.downstream.det.models.backbone_3d import VoxelBackBone8x
 from omnilidar.downstream.det.models.dense_heads import AnchorHeadSingle
@@ -132,13 +134,23 @@ class Detector3D(nn.Module):
 
 
 def build_detector(model_cfg: dict, num_class: int, class_names: list[str], point_cloud_range, voxel_size,
-                   **kwargs) -> Detector3D:
+                   source: str | None = None, **kwargs) -> Detector3D:
     """The detector of an OpenPCDet MODEL config (``NAME`` one of DETECTORS).
 
     kwargs: ``num_point_features`` (raw point features, default 4: x, y, z,
     intensity), ``sparse_backend`` ("torch", "spconv", "auto"), ``seed`` of the
-    heads' sampling generator.
+    heads' sampling generator. A bad config raises InputError naming ``source``
+    (the config file the MODEL section came from).
     """
+    try:
+        return _build(model_cfg, num_class, class_names, point_cloud_range, voxel_size, **kwargs)
+    except KeyError as err:
+        raise InputError(source, f"MODEL config lacks key {err.args[0]!r}") from None
+    except ValueError as err:
+        raise InputError(source, f"MODEL config: {err}") from None
+
+
+def _build(model_cfg, num_class, class_names, point_cloud_range, voxel_size, **kwargs) -> Detector3D:
     if model_cfg.get("NAME") not in DETECTORS:
         raise ValueError(f"MODEL.NAME {model_cfg.get('NAME')!r} is not one of {', '.join(DETECTORS)}")
     if len(class_names) != num_class:
