@@ -13,11 +13,11 @@ import yaml
 from det_pvrcnn_keys import pv_rcnn_kitti_keys
 
 from omnilidar.downstream.det.models import build_detector
-
 from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import StackSAModuleMSG
 from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
 from omnilidar.downstream.det.models.voxel_set_abstraction import VoxelSetAbstraction, bilinear_interpolate
+from omnilidar.errors import InputError
 from omnilidar.sparse.tensor import SparseTensor
 
 POINT_CLOUD_RANGE = [0.0, -4.0, -2.0, 8.0, 4.0, 2.0]
@@ -390,3 +390,10 @@ def test_pvrcnn_head_flattens_the_pooled_grid_channel_major():
     with torch.no_grad():
         head(batch)
     assert seen["out"][0, 0, 0] == 2.0 and seen["out"][0, 1:].abs().sum() == 0
+
+
+def test_a_set_abstraction_width_that_contradicts_the_backbone_is_a_config_error():
+    cfg = tiny_model_config()
+    cfg["PFE"]["SA_LAYER"]["x_conv3"]["INPUT_CHANNELS"] = 64  # the small backbone's x_conv3 has 32
+    with pytest.raises(InputError, match="x_conv3.INPUT_CHANNELS is 64 but the 3D backbone's x_conv3 has 32"):
+        build_detector(cfg, 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL, source="pv_rcnn.yaml")

@@ -104,8 +104,12 @@ class VoxelSetAbstraction(nn.Module):
             # The input width: INPUT_CHANNELS, else the backbone's width at that level, else
             # (OpenPCDet's rule, the same for its published configs) the first MLP width.
             channels = layer_cfg.get("INPUT_CHANNELS")
-            if channels is None and backbone_channels and name in backbone_channels:
-                channels = backbone_channels[name]
+            known = (backbone_channels or {}).get(name)
+            if channels is None:
+                channels = known
+            elif known is not None and int(channels) != int(known):
+                raise ValueError(f"PFE.SA_LAYER.{name}.INPUT_CHANNELS is {channels} but the 3D backbone's "
+                                 f"{name} has {known} channels")
             if channels is None:
                 first = layer_cfg["MLPS"][0]
                 channels = first[0] if isinstance(first, (list, tuple)) else first
