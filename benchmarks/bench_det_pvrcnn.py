@@ -7,12 +7,20 @@ interpolation), the keypoint head, and RoI-grid pooling of 128 RoIs per frame
 The sparse maps are the frame's occupied voxels at strides 1, 2, 4, 8 with
 random features (the backbone itself is not timed here).
 
+With ``--whole paper|small`` it instead times the whole detector (one training
+step and one inference pass on two frames, Car only) on the synthetic scene of
+bench_det_voxelrcnn.py, for comparison with Voxel R-CNN's numbers there.
+
     python benchmarks/bench_det_pvrcnn.py [--points 20000] [--device cpu|cuda] [--repeats 3]
+    python benchmarks/bench_det_pvrcnn.py --whole small [--points 20000] [--device cpu|cuda]
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
+import importlib.util
+import json
 import statistics
 import time
 from pathlib import Path
@@ -20,6 +28,7 @@ from pathlib import Path
 import torch
 import yaml
 
+from omnilidar.downstream.det.models import build_detector
 from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import batch_counts, build_local_aggregation_module
 from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
@@ -66,13 +75,43 @@ def timed(fn, repeats: int, device) -> float:
     return statistics.median(times)
 
 
+def whole_detector(section: str, points: int, device, repeats: int) -> None:
+    """Train step and inference of the whole PV-RCNN (Car) on bench_det_voxelrcnn's scene."""
+    spec = importlib.util.spec_from_file_location("bench_det_voxelrcnn", ROOT / "benchmarks" / "bench_det_voxelrcnn.py")
+    voxelrcnn_bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(voxelrcnn_bench)
+    cfg = copy.deepcopy(yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())[section])
+    anchors = cfg["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"]
+    cfg["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"] = [a for a in anchors if a["class_name"] == "Car"]
+    torch.manual_seed(0)
+    model = build_detector(cfg, 1, ["Car"], voxelrcnn_bench.RANGE, voxelrcnn_bench.VOXEL).to(device)
+    batch = voxelrcnn_bench.to_device(voxelrcnn_bench.synthetic_batch(points, 2, seed=0), device)
+    train_s, eval_s = [], []
+    for _ in range(repeats):
+        model.train()
+        model.zero_grad()
+        train_s.append(timed(lambda: model(dict(batch))[0]["loss"].backward(), 1, device))
+        model.eval()
+        with torch.no_grad():
+            eval_s.append(timed(lambda: model(dict(batch)), 1, device))
+    out = {"device": str(device), "config": section, "points_per_frame": points, "voxels": len(batch["voxels"]),
+           "train_step_s": train_s, "eval_s": eval_s, "torch_threads": torch.get_num_threads()}
+    if device.type == "cuda":
+        out["max_memory_gib"] = torch.cuda.max_memory_allocated() / 2 ** 30
+    print(json.dumps(out, indent=1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=20000)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--whole", choices=["paper", "small"], help="time the whole detector instead")
     args = parser.parse_args()
     device = torch.device(args.device)
+    if args.whole:
+        whole_detector(args.whole, args.points, device, args.repeats)
+        return
     torch.manual_seed(0)
     model = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())["paper"]
     vsa = VoxelSetAbstraction(model["PFE"], VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=256,
