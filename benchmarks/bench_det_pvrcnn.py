@@ -80,7 +80,8 @@ def whole_detector(section: str, points: int, device, repeats: int) -> None:
     spec = importlib.util.spec_from_file_location("bench_det_voxelrcnn", ROOT / "benchmarks" / "bench_det_voxelrcnn.py")
     voxelrcnn_bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(voxelrcnn_bench)
-    cfg = copy.deepcopy(yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())[section])
+    doc = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())
+    cfg = voxelrcnn_bench.merge(doc["MODEL"], doc["CPU_SMALL"]) if section == "small" else copy.deepcopy(doc["MODEL"])
     anchors = cfg["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"]
     cfg["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"] = [a for a in anchors if a["class_name"] == "Car"]
     torch.manual_seed(0)
@@ -113,7 +114,7 @@ def main() -> None:
         whole_detector(args.whole, args.points, device, args.repeats)
         return
     torch.manual_seed(0)
-    model = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())["paper"]
+    model = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())["MODEL"]
     vsa = VoxelSetAbstraction(model["PFE"], VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=256,
                               num_rawpoint_features=4).to(device).train()
     head = PointHeadSimple(1, vsa.num_point_features_before_fusion, model["POINT_HEAD"]).to(device).train()

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_det_voxelrcnn.py [--device cuda] [--points 20000] [--config paper|small]
 
-Builds the MODEL config from config/detectors/voxel_rcnn.yaml on OpenPCDet's
+Builds MODEL (paper) or MODEL + CPU_SMALL (small) from config/detectors/voxel_rcnn.yaml on OpenPCDet's
 KITTI grid (range [0, -40, -3, 70.4, 40, 1], voxel [0.05, 0.05, 0.1]) with a
 synthetic scene (uniform ground clutter plus points inside 10 car boxes), then
 times one training step and one inference pass; prints JSON.
@@ -63,6 +63,15 @@ def synthetic_batch(num_points: int, batch_size: int, seed: int, max_points: int
             "voxel_coords": uniq.int(), "gt_boxes": torch.stack(gts)}
 
 
+def merge(base: dict, overrides: dict) -> dict:
+    """CPU_SMALL merged into MODEL key by key (dicts recursively), as the workflow does."""
+    out = copy.deepcopy(base)
+    for key, value in overrides.items():
+        out[key] = merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else copy.deepcopy(value)
+    return out
+
+
 def to_device(batch: dict, device) -> dict:
     return {k: v.to(device) if torch.is_tensor(v) else v for k, v in batch.items()}
 
@@ -81,9 +90,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     device = torch.device(args.device)
-    cfg = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
+    doc = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
+    cfg = merge(doc["MODEL"], doc["CPU_SMALL"]) if args.config == "small" else doc["MODEL"]
     torch.manual_seed(0)
-    model = build_detector(copy.deepcopy(cfg[args.config]), 1, ["Car"], RANGE, VOXEL).to(device)
+    model = build_detector(copy.deepcopy(cfg), 1, ["Car"], RANGE, VOXEL).to(device)
     batch = synthetic_batch(args.points, args.batch_size, seed=0)
     out = {"device": str(device), "config": args.config, "voxels": len(batch["voxels"])}
     train_s, eval_s = [], []

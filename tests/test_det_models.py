@@ -14,10 +14,22 @@ import yaml
 from omnilidar.downstream.det.models import build_detector
 from omnilidar.downstream.det.models.anchor_generator import generate_anchors
 from omnilidar.downstream.det.models.box_coder import ResidualCoder
-from omnilidar.downstream.det.optim import build_optimizer, clip_gradients
+from omnilidar.downstream.det.optim import adam_onecycle, build_optimizer, clip_gradients
 from omnilidar.errors import InputError
 
-CONFIGS = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
+DOC = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
+
+
+def _merged(base: dict, overrides: dict) -> dict:
+    """Overrides merged key by key (dicts recursively), as the workflow applies CPU_SMALL."""
+    out = copy.deepcopy(base)
+    for key, value in overrides.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else copy.deepcopy(value)
+    return out
+
+
+CONFIGS = {"paper": DOC["MODEL"], "small": _merged(DOC["MODEL"], DOC["CPU_SMALL"])}
 KITTI_RANGE = [0.0, -40.0, -3.0, 70.4, 40.0, 1.0]
 KITTI_VOXEL = [0.05, 0.05, 0.1]
 # Tiny scene: 32 x 32 x 40 voxels, a 4 x 4 BEV map at stride 8.
@@ -98,6 +110,12 @@ def test_paper_model_loads_openpcdet_state_dict_strictly():
     model.load_state_dict(foreign, strict=True)
     key = "backbone_3d.conv2.0.0.weight"
     assert torch.equal(model.state_dict()[key], foreign[key])
+    # A checkpoint trained with spconv 1.x stores sparse weights as (k, k, k, in, out).
+    old_layout = {k: v.permute(1, 2, 3, 4, 0).contiguous() if v.ndim == 5 else v for k, v in foreign.items()}
+    assert old_layout[key].shape == (3, 3, 3, 16, 32)
+    model.load_openpcdet_state(old_layout)
+    assert torch.equal(model.state_dict()[key], foreign[key])
+    assert torch.equal(model.state_dict()["backbone_3d.conv_out.0.weight"], foreign["backbone_3d.conv_out.0.weight"])
 
 
 def _tiny_cfg() -> dict:
@@ -190,8 +208,9 @@ def test_rois_near_the_boxes_train_the_refinement():
 def test_eval_returns_contract_predictions_and_recall():
     model = _tiny_model()
     model.eval()
+    batch = _tiny_batch()
     with torch.no_grad():
-        pred_dicts, recall = model(_tiny_batch())
+        pred_dicts, recall = model(batch)
     assert len(pred_dicts) == 2
     for pred in pred_dicts:
         assert set(pred) == {"pred_boxes", "pred_scores", "pred_labels"}
@@ -199,6 +218,7 @@ def test_eval_returns_contract_predictions_and_recall():
         assert pred["pred_boxes"].shape == (k, 7) and pred["pred_labels"].shape == (k,)
         assert k == 0 or (pred["pred_labels"] >= 1).all()
         assert (pred["pred_scores"] >= 0.3).all()  # POST_PROCESSING.SCORE_THRESH
+        assert (pred["pred_boxes"][:, 3:6] > 0).all()  # nothing refined from RoI padding
     assert recall["gt"] == 3  # the zero padding row of sample 1 is not a box
     assert set(recall) == {"gt"} | {f"{s}_{t}" for s in ("roi", "rcnn") for t in (0.3, 0.5, 0.7)}
 
@@ -240,6 +260,9 @@ def test_one_cycle_schedule_matches_fastai_shape():
     assert group["lr"] == pytest.approx(0.0055)  # half way up the first half-cosine
     schedule.step(99)
     assert 1e-7 < group["lr"] < 1e-5 and group["betas"][0] == pytest.approx(0.95, abs=1e-3)
+    lower_case = adam_onecycle(model, {"lr": 0.01, "moms": [0.95, 0.85], "pct_start": 0.4, "div_factor": 10}, 100)[1]
+    lower_case(20)  # callable with the step, as the training hook uses it
+    assert lower_case.optimizer.param_groups[0]["lr"] == pytest.approx(0.0055)
     with pytest.raises(InputError, match="OPTIMIZER 'sgd'"):
         build_optimizer(model, {"OPTIMIZER": "sgd", "LR": 0.1}, 10)
 
@@ -268,13 +291,106 @@ def test_anchor_layout_matches_openpcdet():
 def test_bad_model_config_raises_input_error():
     cfg = copy.deepcopy(CONFIGS["small"])
     cfg["MAP_TO_BEV"]["NUM_BEV_FEATURES"] = 48
-    model = build_detector(cfg, 1, ["Car"], TINY_RANGE, TINY_VOXEL)
-    model.eval()
-    with pytest.raises(ValueError, match="NUM_BEV_FEATURES is 48"):
-        model(_tiny_batch())
+    with pytest.raises(InputError, match="NUM_BEV_FEATURES is 48 but the 3D backbone on this grid gives 64"):
+        build_detector(cfg, 1, ["Car"], TINY_RANGE, TINY_VOXEL)
+    # 25 z cells leave one slice after conv_out: 32 channels, not 64.
+    with pytest.raises(InputError, match="gives 32"):
+        build_detector(CONFIGS["small"], 1, ["Car"], TINY_RANGE, [0.2, 0.2, 0.16])
     broken = copy.deepcopy(CONFIGS["small"])
     del broken["ROI_HEAD"]["SHARED_FC"]
     with pytest.raises(InputError, match="det.yaml: MODEL config lacks key 'SHARED_FC'"):
         build_detector(broken, 1, ["Car"], TINY_RANGE, TINY_VOXEL, source="det.yaml")
     with pytest.raises(InputError, match="VoxelRCNNX"):
         build_detector({**CONFIGS["small"], "NAME": "VoxelRCNNX"}, 1, ["Car"], TINY_RANGE, TINY_VOXEL)
+
+
+def test_target_assigner_marks_the_matching_anchor_and_encodes_its_box():
+    from omnilidar.downstream.det.models.target_assigner import AxisAlignedTargetAssigner
+
+    head_cfg = copy.deepcopy(CONFIGS["small"]["DENSE_HEAD"])
+    anchors, _ = generate_anchors(TINY_RANGE, head_cfg["ANCHOR_GENERATOR_CONFIG"], [32, 32, 40])
+    flat = anchors[0].reshape(-1, 7)
+    target = flat[11].clone()
+    target[0] += 0.3  # a little off the anchor: still its best match (IoU > 0.6)
+    gt = torch.zeros(1, 3, 8)
+    gt[0, 0, :7], gt[0, 0, 7] = target, 1
+    assigner = AxisAlignedTargetAssigner(head_cfg, ["Car"], ResidualCoder(), torch.Generator().manual_seed(0))
+    out = assigner.assign_targets(anchors, gt)
+    labels = out["box_cls_labels"][0]
+    assert labels[11] == 1 and out["reg_weights"][0, 11] == 1
+    decoded = ResidualCoder().decode_torch(out["box_reg_targets"][0, 11], flat[11])
+    assert torch.allclose(decoded, target, atol=1e-5)
+    # The anchor rotated by 90 degrees at the same place overlaps the box less in
+    # rounded BEV IoU (1.6 x 3.9 crossed with 3.9 x 1.6): background, no regression.
+    other = 10
+    assert flat[other, :2].allclose(flat[11, :2]) and float(flat[other, 6]) == 0.0
+    assert labels[other] == 0 and out["reg_weights"][0, other] == 0
+    assert (labels >= 0).all()  # POS_FRACTION -1: no anchor is left unassigned here
+
+
+def test_proposal_target_layer_samples_foreground_share_and_soft_labels():
+    from omnilidar.downstream.det.models.proposal_target_layer import ProposalTargetLayer
+
+    cfg = dict(CONFIGS["paper"]["ROI_HEAD"]["TARGET_CONFIG"], ROI_PER_IMAGE=20)
+    gt_box = torch.tensor([10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0])
+    rois = gt_box.repeat(40, 1)
+    rois[:10, 0] += torch.linspace(0.0, 0.3, 10)  # foreground (IoU > 0.9)
+    rois[10:20, 0] += 2.0  # IoU 1/3: hard background, soft label
+    rois[20:, 0] += 20.0  # IoU 0: easy background
+    batch = {"batch_size": 1, "rois": rois[None], "roi_scores": torch.rand(1, 40),
+             "roi_labels": torch.ones(1, 40, dtype=torch.long),
+             "gt_boxes": torch.cat([gt_box, torch.tensor([1.0])])[None, None]}
+    out = ProposalTargetLayer(cfg, torch.Generator().manual_seed(0)).forward(batch)
+    ious = out["gt_iou_of_rois"][0]
+    assert out["rois"].shape == (1, 20, 7)
+    assert (ious[:10] > 0.55).all() and (ious[10:] < 0.55).all()  # FG_RATIO 0.5 of 20
+    assert len(set(out["rois"][0, :10, 0].tolist())) == 10  # foreground drawn without replacement
+    hard = (ious[10:] >= 0.1).sum()
+    assert hard == int(10 * 0.8)  # HARD_BG_RATIO
+    labels = out["rcnn_cls_labels"][0]
+    assert (labels[:10] == 1).all()
+    soft = (ious[10:] - 0.25) / 0.5
+    expected = torch.where(ious[10:] < 0.25, torch.zeros_like(soft), soft)
+    assert torch.allclose(labels[10:], expected)
+    assert torch.equal(out["reg_valid_mask"][0], (ious > 0.55).long())
+
+
+def test_roi_targets_are_in_the_roi_frame_with_flipped_heading():
+    from omnilidar.downstream.det.models.roi_head_template import RoIHeadTemplate
+
+    head = RoIHeadTemplate(1, CONFIGS["paper"]["ROI_HEAD"])
+    roi = torch.tensor([5.0, 2.0, -1.0, 4.0, 2.0, 1.5, 0.5])
+    gt = roi.clone()
+    gt[6] += math.pi  # same box facing the other way
+    gt[0] += 1.0
+    batch = {"batch_size": 1, "rois": roi.repeat(4, 1)[None], "roi_scores": torch.ones(1, 4),
+             "roi_labels": torch.ones(1, 4, dtype=torch.long),
+             "gt_boxes": torch.cat([gt, torch.tensor([1.0])])[None, None]}
+    head.proposal_target_layer.cfg = dict(head.proposal_target_layer.cfg, ROI_PER_IMAGE=4)
+    out = head.assign_targets(batch)
+    local = out["gt_of_rois"][0, 0]
+    # A 1 m shift along the lidar x axis seen from a RoI turned by 0.5 rad.
+    assert torch.allclose(local[:3], torch.tensor([math.cos(0.5), -math.sin(0.5), 0.0]), atol=1e-5)
+    assert abs(float(local[6])) < 1e-5  # heading flipped by pi into (-pi/2, pi/2)
+    assert torch.allclose(out["gt_of_rois_src"][0, 0, :7], gt)
+
+
+def test_post_processing_scores_nms_labels_and_skips_padding_rois():
+    from omnilidar.downstream.det.models.post_processing import post_processing
+
+    boxes = torch.tensor([[[5.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0],
+                           [5.1, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0],  # suppressed by the first
+                           [15.0, 3.0, -1.0, 4.0, 2.0, 1.5, 1.0],
+                           [25.0, 3.0, -1.0, 4.0, 2.0, 1.5, 1.0],  # under SCORE_THRESH
+                           [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]]])  # refined from a padding RoI
+    logits = torch.tensor([[[3.0], [2.0], [1.0], [-3.0], [4.0]]])
+    gt = torch.tensor([[[5.0, 0.2, -1.0, 4.0, 2.0, 1.5, 0.0, 1.0], [40.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0, 2.0]]])
+    batch = {"batch_size": 1, "batch_box_preds": boxes, "batch_cls_preds": logits, "cls_preds_normalized": False,
+             "rois": boxes.clone(), "roi_labels": torch.tensor([[2, 2, 1, 1, 0]]), "has_class_labels": True,
+             "gt_boxes": gt}
+    preds, recall = post_processing(batch, CONFIGS["paper"]["POST_PROCESSING"], num_class=2)
+    assert torch.equal(preds[0]["pred_boxes"], boxes[0, [0, 2]])
+    assert torch.allclose(preds[0]["pred_scores"], torch.sigmoid(torch.tensor([3.0, 1.0])))
+    assert preds[0]["pred_labels"].tolist() == [2, 1]  # the RoIs' labels (has_class_labels)
+    assert recall == {"gt": 2, "roi_0.3": 1, "rcnn_0.3": 1, "roi_0.5": 1, "rcnn_0.5": 1,
+                      "roi_0.7": 1, "rcnn_0.7": 1}

@@ -269,12 +269,22 @@ TINY_ANCHORS = [
 ]
 
 
+def merged(base: dict, overrides: dict) -> dict:
+    """Overrides merged key by key (dicts recursively), as the workflow applies CPU_SMALL."""
+    out = copy.deepcopy(base)
+    for key, value in overrides.items():
+        out[key] = merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else copy.deepcopy(value)
+    return out
+
+
 def model_configs() -> dict:
-    return yaml.safe_load(CONFIG.read_text())
+    doc = yaml.safe_load(CONFIG.read_text())
+    return {"paper": doc["MODEL"], "small": merged(doc["MODEL"], doc["CPU_SMALL"])}
 
 
 def tiny_model_config() -> dict:
-    cfg = copy.deepcopy(model_configs()["small"])
+    cfg = model_configs()["small"]
     cfg["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"] = TINY_ANCHORS
     cfg["PFE"]["NUM_KEYPOINTS"] = 128
     return cfg

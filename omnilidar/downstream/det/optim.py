@@ -57,6 +57,8 @@ class OneCycle:
             group["lr"] = lr
             group["betas"] = (mom, group["betas"][1])
 
+    __call__ = step
+
     def state_dict(self) -> dict:
         return {}
 
@@ -66,10 +68,17 @@ class OneCycle:
 
 def build_optimizer(model: nn.Module, optim_cfg: dict, total_steps: int, source: str = "OPTIMIZATION"):
     """(optimizer, schedule) for OpenPCDet's OPTIMIZATION section; call
-    ``schedule.step(global_step)`` before each ``optimizer.step()``."""
+    ``schedule.step(global_step)`` (or ``schedule(global_step)``) before each ``optimizer.step()``."""
     name = optim_cfg.get("OPTIMIZER")
     if name not in OPTIMIZERS:
         raise InputError(source, f"OPTIMIZER {name!r} is not supported (supported: {', '.join(OPTIMIZERS)})")
+    return adam_onecycle(model, optim_cfg, total_steps)
+
+
+def adam_onecycle(model: nn.Module, schedule: dict, total_steps: int):
+    """(AdamW, OneCycle) from LR, WEIGHT_DECAY, MOMS, DIV_FACTOR, PCT_START; the keys
+    may also be lower case (the workflow's ``schedule`` settings)."""
+    optim_cfg = {str(k).upper(): v for k, v in schedule.items()}
     optimizer = torch.optim.AdamW(model.parameters(), lr=float(optim_cfg["LR"]), betas=(0.9, 0.99),
                                   weight_decay=float(optim_cfg.get("WEIGHT_DECAY", 0.0)))
     schedule = OneCycle(optimizer, total_steps, float(optim_cfg["LR"]), list(optim_cfg.get("MOMS", [0.95, 0.85])),

@@ -33,7 +33,8 @@ class BaseBEVBackbone(nn.Module):
                 layers += [nn.Conv2d(c_out, c_out, 3, padding=1, bias=False), _bn(c_out), nn.ReLU()]
             self.blocks.append(nn.Sequential(*layers))
             if up_strides:
-                self.deblocks.append(self._deblock(c_out, up_filters[i], up_strides[i]))
+                self.deblocks.append(self._deblock(c_out, up_filters[i], up_strides[i],
+                                                   bool(model_cfg.get("USE_CONV_FOR_NO_STRIDE", False))))
         c_total = sum(up_filters)
         if len(up_strides) > len(layer_nums):
             self.deblocks.append(nn.Sequential(
@@ -42,8 +43,8 @@ class BaseBEVBackbone(nn.Module):
         self.num_bev_features = c_total if up_strides else num_filters[-1]
 
     @staticmethod
-    def _deblock(c_in: int, c_out: int, stride: float) -> nn.Sequential:
-        if stride >= 1:
+    def _deblock(c_in: int, c_out: int, stride: float, conv_for_no_stride: bool) -> nn.Sequential:
+        if stride > 1 or (stride == 1 and not conv_for_no_stride):
             conv = nn.ConvTranspose2d(c_in, c_out, int(stride), stride=int(stride), bias=False)
         else:
             k = int(round(1 / stride))

@@ -21,6 +21,7 @@ from omnilidar.downstream.det.models.map_to_bev import HeightCompression
 from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.post_processing import post_processing
 from omnilidar.downstream.det.models.pvrcnn_head import PVRCNNHead
+from omnilidar.downstream.det.models.spconv_layout import adapt_spconv_weights
 from omnilidar.downstream.det.models.vfe import MeanVFE
 from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
 from omnilidar.downstream.det.models.voxel_set_abstraction import VoxelSetAbstraction
@@ -90,8 +91,13 @@ class Detector3D(nn.Module):
             m = cls(input_channels=info["num_point_features"], sparse_backend=sparse_backend, **common)
             info["num_point_features"] = m.num_point_features
             info["backbone_channels"] = getattr(m, "backbone_channels", None)
+            info["backbone_bev_features"] = getattr(m, "num_bev_features", None)
         elif key == "MAP_TO_BEV":
             m = cls(**common)
+            expected = info.get("backbone_bev_features")
+            if expected is not None and m.num_bev_features != expected:
+                raise ValueError(f"MAP_TO_BEV.NUM_BEV_FEATURES is {m.num_bev_features} but the 3D backbone on "
+                                 f"this grid gives {expected} (its output width x z slices)")
             info["num_bev_features"] = m.num_bev_features
         elif key == "PFE":
             m = cls(num_bev_features=info.get("num_bev_features"), num_rawpoint_features=info["num_rawpoint_features"],
@@ -113,6 +119,10 @@ class Detector3D(nn.Module):
             m = cls(input_channels=info["num_point_features"], backbone_channels=info.get("backbone_channels"),
                     num_class=agnostic_classes, **common)
         return m
+
+    def load_openpcdet_state(self, model_state: dict[str, torch.Tensor], strict: bool = True):
+        """Load an OpenPCDet checkpoint's ``model_state`` (spconv 1.x sparse weights permuted)."""
+        return self.load_state_dict(adapt_spconv_weights(model_state, self.state_dict()), strict=strict)
 
     def forward(self, batch_dict: dict):
         for module in self.module_list:

@@ -51,12 +51,17 @@ def post_processing(batch_dict: dict, post_cfg: dict, num_class: int) -> tuple[l
             mask = b
         box_preds = batch_dict["batch_box_preds"][mask]
         cls_preds = batch_dict["batch_cls_preds"][mask]
+        raw_cls_preds = cls_preds
         if not batch_dict.get("cls_preds_normalized", False):
             cls_preds = torch.sigmoid(cls_preds)
         if cls_preds.shape[1] not in (1, num_class):
             raise ValueError(f"class scores have {cls_preds.shape[1]} columns, expected 1 or {num_class}")
+        # Unlike OpenPCDet, boxes refined from the zero padding of the RoI list
+        # (fewer RoIs than NMS_POST_MAXSIZE survive the proposal NMS) are never
+        # predictions: they have zero size and would count as false positives.
+        real = (box_preds[:, 3:6] > 0).all(dim=1).nonzero().view(-1)
         if nms_cfg.get("MULTI_CLASSES_NMS", False):
-            scores, labels, boxes = multi_class_nms(cls_preds, box_preds, nms_cfg, score_thresh)
+            scores, labels, boxes = multi_class_nms(cls_preds[real], box_preds[real], nms_cfg, score_thresh)
             labels = labels + 1
         else:
             best, labels = cls_preds.max(dim=-1)
@@ -65,9 +70,10 @@ def post_processing(batch_dict: dict, post_cfg: dict, num_class: int) -> tuple[l
                 labels = batch_dict[key][b]
             else:
                 labels = labels + 1
-            selected, scores = class_agnostic_nms(best, box_preds, nms_cfg, score_thresh)
-            if post_cfg.get("OUTPUT_RAW_SCORE", False):
-                scores = cls_preds.max(dim=-1).values[selected]
+            selected, scores = class_agnostic_nms(best[real], box_preds[real], nms_cfg, score_thresh)
+            selected = real[selected]
+            if post_cfg.get("OUTPUT_RAW_SCORE", False):  # the logits, before the sigmoid
+                scores = raw_cls_preds.max(dim=-1).values[selected]
             labels, boxes = labels[selected], box_preds[selected]
         recall_dict = recall_record(box_preds if "rois" in batch_dict else boxes, recall_dict, b, batch_dict,
                                     thresh_list)
