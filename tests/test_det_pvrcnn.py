@@ -331,6 +331,10 @@ def test_openpcdet_pv_rcnn_state_dict_loads_strictly():
     assert {k: tuple(v.shape) for k, v in own.items()} == expected
     assert torch.equal(own["roi_head.shared_fc_layer.0.weight"], state["roi_head.shared_fc_layer.0.weight"])
     assert torch.equal(own["pfe.SA_rawpoints.mlps.1.3.weight"], state["pfe.SA_rawpoints.mlps.1.3.weight"])
+    # the published checkpoint (spconv 1.x) stores sparse weights as (k, k, k, in, out)
+    old_layout = {k: v.permute(1, 2, 3, 4, 0).contiguous() if v.ndim == 5 else v for k, v in state.items()}
+    model.load_openpcdet_state(old_layout, strict=True)
+    assert torch.equal(model.state_dict()["backbone_3d.conv2.0.0.weight"], state["backbone_3d.conv2.0.0.weight"])
 
 
 def test_pv_rcnn_trains_and_predicts_on_a_tiny_batch():
