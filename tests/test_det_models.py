@@ -296,6 +296,12 @@ def test_bad_model_config_raises_input_error():
     # 25 z cells leave one slice after conv_out: 32 channels, not 64.
     with pytest.raises(InputError, match="gives 32"):
         build_detector(CONFIGS["small"], 1, ["Car"], TINY_RANGE, [0.2, 0.2, 0.16])
+    # 47 x 47 BEV cells at stride 8: the stride-2 level upsamples to 48, OpenPCDet would fail in torch.cat.
+    with pytest.raises(InputError, match=r"a 47 x 47 BEV map gives levels of sizes \[\(47, 47\), \(48, 48\)\]"):
+        build_detector(CONFIGS["small"], 1, ["Car"], [0.0, -37.6, -2.0, 75.2, 37.6, 2.0], [0.2, 0.2, 0.1])
+    # An odd grid: the backbone pads to 4 cells, the anchors (grid // 8) see 3.
+    with pytest.raises(InputError, match=r"anchors lie on a \(3, 3\) map"):
+        build_detector(CONFIGS["small"], 1, ["Car"], [0.0, -3.0, -2.0, 6.0, 3.0, 2.0], [0.2, 0.2, 0.1])
     broken = copy.deepcopy(CONFIGS["small"])
     del broken["ROI_HEAD"]["SHARED_FC"]
     with pytest.raises(InputError, match="det.yaml: MODEL config lacks key 'SHARED_FC'"):

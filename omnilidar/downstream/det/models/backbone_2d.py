@@ -42,6 +42,31 @@ class BaseBEVBackbone(nn.Module):
                 _bn(c_total), nn.ReLU()))
         self.num_bev_features = c_total if up_strides else num_filters[-1]
 
+    def output_size(self, height: int, width: int) -> tuple[int, int]:
+        """The BEV map size out of a ``height`` x ``width`` input; ValueError when the
+        upsampled levels would not line up for concatenation."""
+        sizes = []
+        h, w = height, width
+        for i, block in enumerate(self.blocks):
+            conv = block[1]
+            h, w = (h + 2 - 3) // conv.stride[0] + 1, (w + 2 - 3) // conv.stride[1] + 1
+            if len(self.deblocks) > 0:
+                up = self.deblocks[i][0]
+                if isinstance(up, nn.ConvTranspose2d):
+                    sizes.append((h * up.stride[0], w * up.stride[1]))
+                else:
+                    sizes.append(((h - up.kernel_size[0]) // up.stride[0] + 1, (w - up.kernel_size[1]) // up.stride[1] + 1))
+            else:
+                sizes.append((h, w))
+        if len(set(sizes)) > 1:
+            raise ValueError(f"BACKBONE_2D: a {height} x {width} BEV map gives levels of sizes {sizes}, which cannot be "
+                             f"concatenated; make the BEV grid (voxels / 8) divisible by the product of LAYER_STRIDES")
+        h, w = sizes[-1]
+        if len(self.deblocks) > len(self.blocks):
+            up = self.deblocks[-1][0]
+            h, w = h * up.stride[0], w * up.stride[1]
+        return h, w
+
     @staticmethod
     def _deblock(c_in: int, c_out: int, stride: float, conv_for_no_stride: bool) -> nn.Sequential:
         if stride > 1 or (stride == 1 and not conv_for_no_stride):

@@ -66,11 +66,12 @@ class VoxelBackBone8x(nn.Module):
             spconv(c4, c_out, (3, 1, 1), stride=(2, 1, 1), padding=last_pad, indice_key="spconv_down2"),
             _norm(c_out), nn.ReLU())
         self.num_point_features = c_out
-        # Channels HeightCompression will see: c_out per z slice left after the four z reductions.
-        z = self.sparse_shape
+        # The output grid (Z, Y, X); HeightCompression sees c_out channels per z slice left.
+        shape = self.sparse_shape
         for kernel, stride, padding in ((3, 2, 1), (3, 2, 1), (3, 2, (0, 1, 1)), ((3, 1, 1), (2, 1, 1), last_pad)):
-            z = strided_output_shape(z, kernel, stride, padding, 1)
-        self.num_bev_features = c_out * z[0]
+            shape = strided_output_shape(shape, kernel, stride, padding, 1)
+        self.out_spatial_shape = shape
+        self.num_bev_features = c_out * shape[0]
         self.backbone_channels = {"x_conv1": c0, "x_conv2": c2, "x_conv3": c3, "x_conv4": c4}
 
     def forward(self, batch_dict: dict) -> dict:

@@ -92,6 +92,8 @@ class Detector3D(nn.Module):
             info["num_point_features"] = m.num_point_features
             info["backbone_channels"] = getattr(m, "backbone_channels", None)
             info["backbone_bev_features"] = getattr(m, "num_bev_features", None)
+            out_shape = getattr(m, "out_spatial_shape", None)
+            info["bev_size"] = None if out_shape is None else tuple(out_shape[1:])
         elif key == "MAP_TO_BEV":
             m = cls(**common)
             expected = info.get("backbone_bev_features")
@@ -107,9 +109,15 @@ class Detector3D(nn.Module):
         elif key == "BACKBONE_2D":
             m = cls(input_channels=info["num_bev_features"], **common)
             info["num_bev_features"] = m.num_bev_features
+            if info.get("bev_size") is not None and hasattr(m, "output_size"):
+                info["bev_size"] = m.output_size(*info["bev_size"])
         elif key == "DENSE_HEAD":
             m = cls(input_channels=info["num_bev_features"], num_class=self.num_class, class_names=self.class_names,
                     predict_boxes_when_training=two_stage, **common)
+            for anchors in getattr(m, "anchors", []):
+                if info.get("bev_size") is not None and tuple(anchors.shape[1:3]) != info["bev_size"]:
+                    raise ValueError(f"DENSE_HEAD anchors lie on a {tuple(anchors.shape[1:3])} map (grid / "
+                                     f"feature_map_stride) but the BEV features are {info['bev_size']} (y, x)")
         elif key == "POINT_HEAD":
             channels = info["num_point_features_before_fusion"] if cfg.get("USE_POINT_FEATURES_BEFORE_FUSION", False) \
                 else info["num_point_features"]
