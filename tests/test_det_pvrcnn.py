@@ -411,3 +411,20 @@ def test_a_set_abstraction_width_that_contradicts_the_backbone_is_a_config_error
     cfg["PFE"]["SA_LAYER"]["x_conv3"]["INPUT_CHANNELS"] = 64  # the small backbone's x_conv3 has 32
     with pytest.raises(InputError, match="x_conv3.INPUT_CHANNELS is 64 but the 3D backbone's x_conv3 has 32"):
         build_detector(cfg, 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL, source="pv_rcnn.yaml")
+
+
+def test_voxel_set_abstraction_samples_keypoints_from_voxel_centres():
+    cfg = vsa_config(num_keypoints=8)
+    cfg["POINT_SOURCE"] = "voxel_centers"
+    vsa = VoxelSetAbstraction(cfg, VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=5, num_rawpoint_features=4).eval()
+    batch = vsa_batch()
+    conv1 = batch["multi_scale_3d_features"]["x_conv1"]
+    batch["voxel_coords"] = conv1.coords  # batch, z, y, x at the input resolution
+    coords = vsa(batch)["point_coords"]
+    origin, size = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(VOXEL_SIZE)
+    for b in range(2):
+        zyx = conv1.coords[conv1.coords[:, 0] == b, 1:4].float()
+        centres = (zyx[:, [2, 1, 0]] + 0.5) * size + origin
+        kp = coords[coords[:, 0] == b, 1:4]
+        assert kp.shape == (8, 3) and torch.allclose(kp[0], centres[0])
+        assert bool((torch.cdist(kp, centres).min(dim=1).values < 1e-4).all())
