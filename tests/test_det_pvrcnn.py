@@ -428,3 +428,31 @@ def test_voxel_set_abstraction_samples_keypoints_from_voxel_centres():
         kp = coords[coords[:, 0] == b, 1:4]
         assert kp.shape == (8, 3) and torch.allclose(kp[0], centres[0])
         assert bool(((kp[:, None] - centres[None]).abs().amax(dim=2).min(dim=1).values < 1e-5).all())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_pv_rcnn_runs_on_cuda_as_on_cpu():
+    torch.manual_seed(0)
+    model = build_detector(tiny_model_config(), 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL).eval()
+    cuda = torch.device("cuda")
+
+    def keypoint_stage(net, batch):
+        with torch.no_grad():
+            for module in net.module_list:
+                batch = module(batch)
+                if module is net.point_head:
+                    return batch
+
+    cpu_out = keypoint_stage(model, tiny_batch())
+    model.to(cuda)
+    gpu_out = keypoint_stage(model, {k: v.to(cuda) if torch.is_tensor(v) else v for k, v in tiny_batch().items()})
+    assert torch.equal(gpu_out["point_coords"].cpu(), cpu_out["point_coords"])
+    torch.testing.assert_close(gpu_out["point_features"].cpu(), cpu_out["point_features"], atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(gpu_out["point_cls_scores"].cpu(), cpu_out["point_cls_scores"], atol=1e-4, rtol=1e-4)
+    model.train()
+    loss = model({k: v.to(cuda) if torch.is_tensor(v) else v for k, v in tiny_batch().items()})[0]["loss"]
+    loss.backward()
+    assert loss.device.type == "cuda" and torch.isfinite(loss)
+    with torch.no_grad():
+        preds, _ = model.eval()({k: v.to(cuda) if torch.is_tensor(v) else v for k, v in tiny_batch().items()})
+    assert all(p["pred_boxes"].device.type == "cuda" for p in preds)
