@@ -2,20 +2,22 @@
 
 from __future__ import annotations
 
+import copy
 import math
+from pathlib import Path
 
 import pytest
 import torch
 import torch.nn.functional as F
+import yaml
+from det_pvrcnn_keys import pv_rcnn_kitti_keys
 
-from omnilidar.downstream.det.models.dense_heads.point_head_simple import PointHeadSimple
-from omnilidar.downstream.det.models.pfe.voxel_set_abstraction import (
-    VoxelSetAbstraction,
-    bilinear_interpolate,
-    voxel_centers,
-)
+from omnilidar.downstream.det.models import build_detector
+from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import StackSAModuleMSG
-from omnilidar.downstream.det.models.roi_heads.roi_grid import roi_grid_points
+from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
+from omnilidar.downstream.det.models.voxel_set_abstraction import VoxelSetAbstraction, bilinear_interpolate
+from omnilidar.errors import InputError
 from omnilidar.sparse.tensor import SparseTensor
 
 POINT_CLOUD_RANGE = [0.0, -4.0, -2.0, 8.0, 4.0, 2.0]
@@ -32,12 +34,13 @@ def random_points(batch_size: int, n: int, seed: int) -> torch.Tensor:
 
 
 def sparse_map(points: torch.Tensor, channels: int, stride: int, batch_size: int, seed: int) -> SparseTensor:
-    """Occupied voxels of ``points`` at ``stride`` with random features (coords batch, x, y, z)."""
+    """Occupied voxels of ``points`` at ``stride`` with random features; rows batch, z, y, x
+    on a (Z, Y, X) grid, as the detection backbone lays them out."""
     g = torch.Generator().manual_seed(seed)
     origin, size = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(VOXEL_SIZE) * stride
-    xyz = ((points[:, 1:4] - origin) / size).floor().int()
-    coords = torch.unique(torch.cat([points[:, :1].int(), xyz], dim=1), dim=0)
-    grid = [math.ceil(80 / stride), math.ceil(80 / stride), math.ceil(20 / stride)]
+    zyx = ((points[:, 1:4] - origin) / size).floor().int()[:, [2, 1, 0]]
+    coords = torch.unique(torch.cat([points[:, :1].int(), zyx], dim=1), dim=0)
+    grid = [math.ceil(20 / stride), math.ceil(80 / stride), math.ceil(80 / stride)]
     return SparseTensor(torch.randn(coords.shape[0], channels, generator=g), coords, grid, batch_size)
 
 
@@ -150,11 +153,6 @@ def test_voxel_set_abstraction_rejects_a_mismatched_backbone_width():
         vsa(batch)
 
 
-def test_voxel_centers_of_a_downsampled_level():
-    centres = voxel_centers(torch.tensor([[1, 2, 3]]), 2, VOXEL_SIZE, POINT_CLOUD_RANGE)
-    assert torch.allclose(centres, torch.tensor([[0.0 + 3.5 * 0.2, -4.0 + 2.5 * 0.2, -2.0 + 1.5 * 0.4]]))
-
-
 def point_head(num_class: int) -> PointHeadSimple:
     cfg = {"NAME": "PointHeadSimple", "CLS_FC": [8], "CLASS_AGNOSTIC": num_class == 1,
            "USE_POINT_FEATURES_BEFORE_FUSION": True, "TARGET_CONFIG": {"GT_EXTRA_WIDTH": [0.2, 0.2, 0.2]},
@@ -206,7 +204,7 @@ def test_point_head_focal_loss_and_scores():
 
 def test_roi_grid_points_cell_centres_rotated_with_the_box():
     rois = torch.tensor([[1.0, 2.0, 3.0, 4.0, 2.0, 2.0, 0.0], [0.0, 0.0, 0.0, 4.0, 2.0, 2.0, math.pi / 2]])
-    grid = roi_grid_points(rois, 2)
+    grid = VoxelRCNNHead.grid_points_of_rois(rois, 2)  # PV-RCNN's flattening order relies on it
     assert grid.shape == (2, 8, 3)
     # x-major order: (ix, iy, iz) = (0,0,0), (0,0,1), (0,1,0), ... ; cell centres at +-size/4
     assert torch.allclose(grid[0, 0], torch.tensor([0.0, 1.5, 2.5]))
@@ -215,3 +213,246 @@ def test_roi_grid_points_cell_centres_rotated_with_the_box():
     assert torch.allclose(grid[0, 4], torch.tensor([2.0, 1.5, 2.5]))
     # heading 90 deg: local +x (length) points along world +y
     assert torch.allclose(grid[1, 4], torch.tensor([0.5, 1.0, -0.5]), atol=1e-6)
+
+
+def test_voxel_set_abstraction_accepts_voxels_not_grouped_by_sample():
+    torch.manual_seed(0)
+    vsa = VoxelSetAbstraction(vsa_config(), VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=5,
+                              num_rawpoint_features=4).eval()
+    batch = vsa_batch()
+    expected = vsa(dict(batch))["point_features"]
+    # interleave the samples' voxels, keeping each sample's own order (spconv need not group them)
+    conv1 = batch["multi_scale_3d_features"]["x_conv1"]
+    b = conv1.coords[:, 0].long()
+    rank = torch.cat([torch.arange(int((b == k).sum())) for k in range(2)])
+    order = torch.argsort(rank * 2 + b, stable=True)
+    assert not torch.equal(b[order], b.sort().values)
+    batch["multi_scale_3d_features"]["x_conv1"] = SparseTensor(conv1.feats[order], conv1.coords[order],
+                                                                conv1.spatial_shape, 2)
+    assert torch.allclose(vsa(dict(batch))["point_features"], expected, atol=1e-6)
+
+
+def test_voxel_set_abstraction_pools_voxels_at_their_metric_centres():
+    torch.manual_seed(0)
+    cfg = vsa_config(num_keypoints=3)
+    cfg["FEATURES_SOURCE"] = ["x_conv1"]
+    vsa = VoxelSetAbstraction(cfg, VOXEL_SIZE, POINT_CLOUD_RANGE, num_rawpoint_features=4).eval()
+    points = torch.tensor([[0, 1.01, -3.55, 0.3, 0.5], [0, 6.22, 2.71, -1.5, 0.1], [0, 3.33, 0.04, 1.7, 0.9]])
+    conv1 = sparse_map(points, 4, 1, 1, seed=6)
+    out = vsa({"batch_size": 1, "points": points, "multi_scale_3d_features": {"x_conv1": conv1}})
+    # the voxel centres by hand: cell corner + half a cell, x/y 0.1 m and z 0.2 m cells
+    origin, size = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(VOXEL_SIZE)
+    centres = (((points[:, 1:4] - origin) / size).floor() + 0.5) * size + origin
+    # match each point's voxel row by its (z, y, x) index
+    zyx = ((points[:, 1:4] - origin) / size).floor().int()[:, [2, 1, 0]]
+    rows = [int(((conv1.coords[:, 1:4] == zyx[i]).all(dim=1)).nonzero()[0, 0]) for i in range(3)]
+    cnt = torch.tensor([3], dtype=torch.int32)
+    _, expected = vsa.SA_layers[0](centres, cnt, out["point_coords"][:, 1:4], cnt, conv1.feats[rows])
+    assert torch.allclose(out["point_features_before_fusion"], expected, atol=1e-6)
+    # and the keypoints do find their voxel (not the empty-ball response)
+    _, empty = vsa.SA_layers[0](centres + 50, cnt, out["point_coords"][:, 1:4], cnt, conv1.feats[rows])
+    assert not torch.allclose(expected, empty, atol=1e-3)
+
+
+# --- the whole detector (det-voxelrcnn's chain + the modules above) ---------------------------------
+
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "detectors" / "pv_rcnn.yaml"
+TINY_RANGE = [0.0, -8.0, -2.0, 12.8, 8.0, 2.0]  # 128 x 160 x 40 cells: 2 z slices after the backbone
+TINY_VOXEL = [0.1, 0.1, 0.1]
+TINY_ANCHORS = [
+    {"class_name": "Car", "anchor_sizes": [[3.9, 1.6, 1.56]], "anchor_rotations": [0, 1.57],
+     "anchor_bottom_heights": [-1.78], "align_center": False, "feature_map_stride": 8,
+     "matched_threshold": 0.6, "unmatched_threshold": 0.45},
+    {"class_name": "Pedestrian", "anchor_sizes": [[0.8, 0.6, 1.73]], "anchor_rotations": [0, 1.57],
+     "anchor_bottom_heights": [-0.6], "align_center": False, "feature_map_stride": 8,
+     "matched_threshold": 0.5, "unmatched_threshold": 0.35},
+]
+
+
+def merged(base: dict, overrides: dict) -> dict:
+    """Overrides merged key by key (dicts recursively), as the workflow applies CPU_SMALL."""
+    out = copy.deepcopy(base)
+    for key, value in overrides.items():
+        out[key] = merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else copy.deepcopy(value)
+    return out
+
+
+def model_configs() -> dict:
+    doc = yaml.safe_load(CONFIG.read_text())
+    return {"paper": doc["MODEL"], "small": merged(doc["MODEL"], doc["CPU_SMALL"])}
+
+
+def tiny_model_config() -> dict:
+    cfg = model_configs()["small"]
+    cfg["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"] = TINY_ANCHORS
+    cfg["PFE"]["NUM_KEYPOINTS"] = 128
+    return cfg
+
+
+def tiny_batch(seed: int = 0) -> dict:
+    """Two frames: scattered ground points plus a car and a pedestrian full of points."""
+    g = torch.Generator().manual_seed(seed)
+    boxes = torch.tensor([[[5.0, -2.0, -0.9, 3.9, 1.6, 1.56, 0.3, 1], [8.0, 3.0, -0.6, 0.8, 0.6, 1.73, 0.0, 2]],
+                          [[7.0, 2.0, -0.9, 3.9, 1.6, 1.56, -0.5, 1], [0, 0, 0, 0, 0, 0, 0, 0]]])
+    frames = []
+    for b in range(2):
+        ground = torch.rand(200, 3, generator=g) * torch.tensor([12.7, 15.9, 0.2]) + torch.tensor([0.0, -7.95, -1.9])
+        parts = [ground]
+        for box in boxes[b][boxes[b, :, 7] > 0]:
+            local = (torch.rand(80, 3, generator=g) - 0.5) * box[3:6] * 0.9
+            c, s = math.cos(float(box[6])), math.sin(float(box[6]))
+            world = torch.stack([local[:, 0] * c - local[:, 1] * s, local[:, 0] * s + local[:, 1] * c, local[:, 2]], 1)
+            parts.append(world + box[0:3])
+        xyz = torch.cat(parts)
+        frames.append(torch.cat([torch.full((len(xyz), 1), float(b)), xyz, torch.rand(len(xyz), 1, generator=g)], 1))
+    points = torch.cat(frames)
+    # one point per voxel (the first), OpenPCDet's voxel layout
+    origin, size = torch.tensor(TINY_RANGE[:3]), torch.tensor(TINY_VOXEL)
+    zyx = ((points[:, 1:4] - origin) / size).floor().long()[:, [2, 1, 0]]
+    coords, inverse = torch.unique(torch.cat([points[:, :1].long(), zyx], 1), dim=0, return_inverse=True)
+    first = torch.full((len(coords),), len(points), dtype=torch.long).scatter_reduce(
+        0, inverse, torch.arange(len(points)), reduce="amin")
+    return {"batch_size": 2, "points": points, "voxels": points[first, 1:][:, None, :],
+            "voxel_num_points": torch.ones(len(coords), dtype=torch.int32), "voxel_coords": coords.int(),
+            "gt_boxes": boxes}
+
+
+def test_openpcdet_pv_rcnn_state_dict_loads_strictly():
+    torch.manual_seed(0)
+    model = build_detector(model_configs()["paper"], 3, ["Car", "Pedestrian", "Cyclist"],
+                           [0.0, -40.0, -3.0, 70.4, 40.0, 1.0], [0.05, 0.05, 0.1])
+    expected = pv_rcnn_kitti_keys()
+    g = torch.Generator().manual_seed(0)
+    state = {k: (torch.randint(0, 9, shape, generator=g) if k.endswith("num_batches_tracked") or k == "global_step"
+                 else torch.randn(shape, generator=g)) for k, shape in expected.items()}
+    model.load_state_dict(state, strict=True)
+    own = model.state_dict()
+    assert {k: tuple(v.shape) for k, v in own.items()} == expected
+    assert torch.equal(own["roi_head.shared_fc_layer.0.weight"], state["roi_head.shared_fc_layer.0.weight"])
+    assert torch.equal(own["pfe.SA_rawpoints.mlps.1.3.weight"], state["pfe.SA_rawpoints.mlps.1.3.weight"])
+    # the published checkpoint (spconv 1.x) stores sparse weights as (k, k, k, in, out)
+    old_layout = {k: v.permute(1, 2, 3, 4, 0).contiguous() if v.ndim == 5 else v for k, v in state.items()}
+    model.load_openpcdet_state(old_layout, strict=True)
+    assert torch.equal(model.state_dict()["backbone_3d.conv2.0.0.weight"], state["backbone_3d.conv2.0.0.weight"])
+
+
+def test_pv_rcnn_trains_and_predicts_on_a_tiny_batch():
+    torch.manual_seed(0)
+    model = build_detector(tiny_model_config(), 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL)
+    model.train()
+    ret, tb, _ = model(tiny_batch())
+    loss = ret["loss"]
+    assert loss.ndim == 0 and torch.isfinite(loss)
+    assert {"point_loss_cls", "point_pos_num", "rcnn_loss_cls", "rcnn_loss_reg"} <= set(tb)
+    assert tb["point_pos_num"] > 0  # keypoints landed inside the boxes
+    loss.backward()
+    for name in ("pfe.vsa_point_feature_fusion.0.weight", "point_head.cls_layers.0.weight",
+                 "roi_head.roi_grid_pool_layer.mlps.0.0.weight", "roi_head.shared_fc_layer.0.weight",
+                 "backbone_3d.conv1.0.0.weight"):
+        grad = dict(model.named_parameters())[name].grad
+        assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0, name
+
+    model.eval()
+    with torch.no_grad():
+        preds, recall = model(tiny_batch())  # gt_boxes kept: recall needs them, as in OpenPCDet
+    assert len(preds) == 2
+    for pred in preds:
+        k = pred["pred_boxes"].shape[0]
+        assert pred["pred_boxes"].shape == (k, 7) and pred["pred_scores"].shape == (k,)
+        assert pred["pred_labels"].shape == (k,) and pred["pred_labels"].dtype == torch.long
+        assert bool(((pred["pred_labels"] >= 1) & (pred["pred_labels"] <= 2)).all())
+    assert {"gt", "roi_0.3", "rcnn_0.3", "roi_0.7", "rcnn_0.7"} <= set(recall)
+    assert recall["gt"] == 3
+
+
+def test_pv_rcnn_fits_one_batch():
+    torch.manual_seed(0)
+    model = build_detector(tiny_model_config(), 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL).train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses, point_losses = [], []
+    for _ in range(8):
+        optimizer.zero_grad()
+        ret, tb, _ = model(tiny_batch())
+        ret["loss"].backward()
+        optimizer.step()
+        losses.append(float(ret["loss"].detach()))
+        point_losses.append(tb["point_loss_cls"])
+    assert sum(losses[-3:]) < 0.8 * sum(losses[:3]), losses
+    assert point_losses[-1] < 0.5 * point_losses[0], point_losses  # the keypoint head learns
+
+
+def test_pvrcnn_head_flattens_the_pooled_grid_channel_major():
+    """shared_fc_layer.0 sees column c * G^3 + g for channel c at grid cell g (OpenPCDet's
+    layout, which its checkpoints' first shared FC weights assume)."""
+    torch.manual_seed(0)
+    cfg = tiny_model_config()
+    model = build_detector(cfg, 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL).eval()
+    head = model.roi_head
+    g3, c = 6 ** 3, 32
+    pooled = torch.zeros(1, g3, c)
+    pooled[0, 5, 3] = 1.0  # grid cell 5, channel 3
+    head.roi_grid_pool = lambda batch_dict: pooled
+    first = head.shared_fc_layer[0]
+    with torch.no_grad():
+        first.weight.zero_()
+        first.weight[0, 3 * g3 + 5, 0] = 2.0
+    seen = {}
+    first.register_forward_hook(lambda m, i, o: seen.setdefault("out", o))
+    batch = {"batch_size": 1, "rois": torch.tensor([[[5.0, 0, 0, 4, 2, 1.5, 0]]]),
+             "roi_labels": torch.ones(1, 1, dtype=torch.long), "roi_scores": torch.ones(1, 1)}
+    with torch.no_grad():
+        head(batch)
+    assert seen["out"][0, 0, 0] == 2.0 and seen["out"][0, 1:].abs().sum() == 0
+
+
+def test_a_set_abstraction_width_that_contradicts_the_backbone_is_a_config_error():
+    cfg = tiny_model_config()
+    cfg["PFE"]["SA_LAYER"]["x_conv3"]["INPUT_CHANNELS"] = 64  # the small backbone's x_conv3 has 32
+    with pytest.raises(InputError, match="x_conv3.INPUT_CHANNELS is 64 but the 3D backbone's x_conv3 has 32"):
+        build_detector(cfg, 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL, source="pv_rcnn.yaml")
+
+
+def test_voxel_set_abstraction_samples_keypoints_from_voxel_centres():
+    cfg = vsa_config(num_keypoints=8)
+    cfg["POINT_SOURCE"] = "voxel_centers"
+    vsa = VoxelSetAbstraction(cfg, VOXEL_SIZE, POINT_CLOUD_RANGE, num_bev_features=5, num_rawpoint_features=4).eval()
+    batch = vsa_batch()
+    conv1 = batch["multi_scale_3d_features"]["x_conv1"]
+    batch["voxel_coords"] = conv1.coords  # batch, z, y, x at the input resolution
+    coords = vsa(batch)["point_coords"]
+    origin, size = torch.tensor(POINT_CLOUD_RANGE[:3]), torch.tensor(VOXEL_SIZE)
+    for b in range(2):
+        zyx = conv1.coords[conv1.coords[:, 0] == b, 1:4].float()
+        centres = (zyx[:, [2, 1, 0]] + 0.5) * size + origin
+        kp = coords[coords[:, 0] == b, 1:4]
+        assert kp.shape == (8, 3) and torch.allclose(kp[0], centres[0])
+        assert bool(((kp[:, None] - centres[None]).abs().amax(dim=2).min(dim=1).values < 1e-5).all())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_pv_rcnn_runs_on_cuda_as_on_cpu():
+    torch.manual_seed(0)
+    model = build_detector(tiny_model_config(), 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL).eval()
+    cuda = torch.device("cuda")
+
+    def keypoint_stage(net, batch):
+        with torch.no_grad():
+            for module in net.module_list:
+                batch = module(batch)
+                if module is net.point_head:
+                    return batch
+
+    cpu_out = keypoint_stage(model, tiny_batch())
+    model.to(cuda)
+    gpu_out = keypoint_stage(model, {k: v.to(cuda) if torch.is_tensor(v) else v for k, v in tiny_batch().items()})
+    assert torch.equal(gpu_out["point_coords"].cpu(), cpu_out["point_coords"])
+    torch.testing.assert_close(gpu_out["point_features"].cpu(), cpu_out["point_features"], atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(gpu_out["point_cls_scores"].cpu(), cpu_out["point_cls_scores"], atol=1e-4, rtol=1e-4)
+    model.train()
+    loss = model({k: v.to(cuda) if torch.is_tensor(v) else v for k, v in tiny_batch().items()})[0]["loss"]
+    loss.backward()
+    assert loss.device.type == "cuda" and torch.isfinite(loss)
+    with torch.no_grad():
+        preds, _ = model.eval()({k: v.to(cuda) if torch.is_tensor(v) else v for k, v in tiny_batch().items()})
+    assert all(p["pred_boxes"].device.type == "cuda" for p in preds)

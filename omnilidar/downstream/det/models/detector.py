@@ -18,10 +18,13 @@ from omnilidar.downstream.det.models.backbone_2d import BaseBEVBackbone
 from omnilidar.downstream.det.models.backbone_3d import VoxelBackBone8x
 from omnilidar.downstream.det.models.dense_heads import AnchorHeadSingle
 from omnilidar.downstream.det.models.map_to_bev import HeightCompression
+from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.post_processing import post_processing
+from omnilidar.downstream.det.models.pvrcnn_head import PVRCNNHead
 from omnilidar.downstream.det.models.spconv_layout import adapt_spconv_weights
 from omnilidar.downstream.det.models.vfe import MeanVFE
 from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
+from omnilidar.downstream.det.models.voxel_set_abstraction import VoxelSetAbstraction
 
 # OpenPCDet's module order: (config key, attribute name).
 MODULE_TOPOLOGY = (("VFE", "vfe"), ("BACKBONE_3D", "backbone_3d"), ("MAP_TO_BEV", "map_to_bev_module"),
@@ -33,11 +36,11 @@ MODULES: dict[str, dict[str, type]] = {
     "VFE": {"MeanVFE": MeanVFE},
     "BACKBONE_3D": {"VoxelBackBone8x": VoxelBackBone8x},
     "MAP_TO_BEV": {"HeightCompression": HeightCompression},
-    "PFE": {},
+    "PFE": {"VoxelSetAbstraction": VoxelSetAbstraction},
     "BACKBONE_2D": {"BaseBEVBackbone": BaseBEVBackbone},
     "DENSE_HEAD": {"AnchorHeadSingle": AnchorHeadSingle},
-    "POINT_HEAD": {},
-    "ROI_HEAD": {"VoxelRCNNHead": VoxelRCNNHead},
+    "POINT_HEAD": {"PointHeadSimple": PointHeadSimple},
+    "ROI_HEAD": {"VoxelRCNNHead": VoxelRCNNHead, "PVRCNNHead": PVRCNNHead},
 }
 DETECTORS = ("VoxelRCNN", "PVRCNN")
 
@@ -100,7 +103,7 @@ class Detector3D(nn.Module):
             info["num_bev_features"] = m.num_bev_features
         elif key == "PFE":
             m = cls(num_bev_features=info.get("num_bev_features"), num_rawpoint_features=info["num_rawpoint_features"],
-                    **common)
+                    backbone_channels=info.get("backbone_channels"), **common)
             info["num_point_features"] = m.num_point_features
             info["num_point_features_before_fusion"] = m.num_point_features_before_fusion
         elif key == "BACKBONE_2D":

@@ -12,6 +12,7 @@ its checkpoints load strictly.
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from omnilidar.downstream.det.ops.sampling import QueryAndGroup
@@ -61,10 +62,23 @@ class StackSAModuleMSG(nn.Module):
         pooled = []
         for grouper, mlp in zip(self.groupers, self.mlps):
             grouped, _ = grouper(xyz, xyz_batch_cnt, new_xyz, new_xyz_batch_cnt, features)  # (M, C, ns)
-            x = mlp(grouped.permute(1, 0, 2).unsqueeze(0))  # (1, C', M, ns)
-            x = x.amax(dim=3) if self.pool_method == "max_pool" else x.mean(dim=3)
-            pooled.append(x.squeeze(0).t())
+            m, c, ns = grouped.shape
+            x = run_shared_mlp(mlp, grouped.transpose(1, 2).reshape(m * ns, c)).view(m, ns, -1)
+            pooled.append(x.amax(dim=1) if self.pool_method == "max_pool" else x.mean(dim=1))
         return new_xyz, torch.cat(pooled, dim=1)
+
+
+def run_shared_mlp(mlp: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """Apply a :func:`shared_mlp` to rows ``(N, C)``: the same result as the 1x1 Conv2d
+    stack on ``(1, C, N, 1)``, as matrix products (several times faster backward on CPU)."""
+    for layer in mlp:
+        if isinstance(layer, nn.Conv2d):
+            x = F.linear(x, layer.weight.flatten(1), layer.bias)
+        elif isinstance(layer, nn.BatchNorm2d):
+            x = layer(x[:, :, None, None]).view(x.shape)
+        else:
+            x = layer(x)
+    return x
 
 
 def build_local_aggregation_module(input_channels: int, config: dict) -> tuple[StackSAModuleMSG, int]:

@@ -8,28 +8,18 @@ foreground (class 1 when class-agnostic, else the box's class); a keypoint insid
 the box enlarged by ``GT_EXTRA_WIDTH`` but not the box itself is ignored; all
 others are background. Loss: sigmoid focal loss (alpha 0.25, gamma 2) summed and
 normalised by the number of foreground keypoints.
+
+Zero-padded gt rows (class 0) are skipped. OpenPCDet enlarges them too, into
+GT_EXTRA_WIDTH-sized boxes at the origin whose keypoints it then ignores.
 """
 
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
+from omnilidar.downstream.det.models.losses import sigmoid_focal_loss
 from omnilidar.downstream.det.ops.points import points_in_boxes
-
-FOCAL_ALPHA = 0.25
-FOCAL_GAMMA = 2.0
-
-
-def sigmoid_focal_loss(logits: torch.Tensor, targets: torch.Tensor, alpha: float = FOCAL_ALPHA,
-                       gamma: float = FOCAL_GAMMA) -> torch.Tensor:
-    """Element-wise sigmoid focal loss (Lin et al. 2017), no reduction."""
-    p = torch.sigmoid(logits)
-    bce = F.binary_cross_entropy_with_logits(logits, targets, reduction="none")
-    p_wrong = targets * (1.0 - p) + (1.0 - targets) * p
-    alpha_t = targets * alpha + (1.0 - targets) * (1.0 - alpha)
-    return alpha_t * p_wrong.pow(gamma) * bce
 
 
 def enlarge_boxes(boxes: torch.Tensor, extra_width) -> torch.Tensor:
@@ -107,6 +97,6 @@ class PointHeadSimple(nn.Module):
         weights = weights / num_pos.clamp(min=1.0)
         one_hot = preds.new_zeros(labels.shape[0], self.num_class + 1)
         one_hot.scatter_(1, labels.clamp(min=0).unsqueeze(1), 1.0)
-        loss = (sigmoid_focal_loss(preds, one_hot[:, 1:]) * weights[:, None]).sum() * self.cls_weight
+        loss = sigmoid_focal_loss(preds, one_hot[:, 1:], weights).sum() * self.cls_weight
         tb_dict.update({"point_loss_cls": float(loss.detach()), "point_pos_num": float(num_pos)})
         return loss, tb_dict

@@ -8,7 +8,8 @@ foreground score from the point head, around every grid point. The pooled
 ``shared_fc_layer`` (1x1 Conv1d-BN-ReLU, dropout between layers), then
 ``cls_layers`` (confidence, one logit per class or one when class-agnostic) and
 ``reg_layers`` (box residuals w.r.t. the RoI). Proposal NMS, target sampling,
-losses and box decoding come from the shared :class:`RoIHeadTemplate`.
+losses and box decoding come from the shared :class:`RoIHeadTemplate`; the grid
+points are Voxel R-CNN's (:meth:`VoxelRCNNHead.grid_points_of_rois`).
 """
 
 from __future__ import annotations
@@ -17,14 +18,29 @@ import torch
 from torch import nn
 
 from omnilidar.downstream.det.models.pointnet2_stack import batch_counts, build_local_aggregation_module
-from omnilidar.downstream.det.models.roi_heads.roi_grid import roi_grid_points
-from omnilidar.downstream.det.models.roi_heads.roi_head_template import RoIHeadTemplate
+from omnilidar.downstream.det.models.roi_head_template import RoIHeadTemplate
+from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
+
+
+def make_fc_layers(input_channels: int, output_channels: int, fc_list, dp_ratio: float) -> nn.Sequential:
+    """OpenPCDet's RoIHeadTemplate.make_fc_layers: 1x1 Conv1d-BN-ReLU per width, a Dropout
+    after the first (whenever DP_RATIO >= 0, so layer indices do not depend on it), then
+    a 1x1 Conv1d with bias to the outputs."""
+    layers: list[nn.Module] = []
+    pre = int(input_channels)
+    for k, c in enumerate(fc_list):
+        layers += [nn.Conv1d(pre, c, kernel_size=1, bias=False), nn.BatchNorm1d(c), nn.ReLU()]
+        pre = c
+        if dp_ratio >= 0 and k == 0:
+            layers.append(nn.Dropout(dp_ratio))
+    layers.append(nn.Conv1d(pre, output_channels, kernel_size=1, bias=True))
+    return nn.Sequential(*layers)
 
 
 class PVRCNNHead(RoIHeadTemplate):
-    def __init__(self, input_channels: int, model_cfg: dict, num_class: int = 1, **kwargs):
-        super().__init__(num_class=num_class, model_cfg=model_cfg)
-        self.model_cfg = model_cfg
+    def __init__(self, input_channels: int, model_cfg: dict, num_class: int = 1,
+                 generator: torch.Generator | None = None, **kwargs):
+        super().__init__(num_class=num_class, model_cfg=model_cfg, generator=generator)
         pool_cfg = model_cfg["ROI_GRID_POOL"]
         self.grid_size = int(pool_cfg["GRID_SIZE"])
         self.roi_grid_pool_layer, c_pooled = build_local_aggregation_module(int(input_channels), pool_cfg)
@@ -39,13 +55,9 @@ class PVRCNNHead(RoIHeadTemplate):
             if k != len(fcs) - 1 and dp_ratio > 0:
                 shared.append(nn.Dropout(dp_ratio))
         self.shared_fc_layer = nn.Sequential(*shared)
-        self.cls_layers = self.make_fc_layers(
-            input_channels=pre_channel, output_channels=self.num_class, fc_list=model_cfg["CLS_FC"]
-        )
-        self.reg_layers = self.make_fc_layers(
-            input_channels=pre_channel, output_channels=self.box_coder.code_size * self.num_class,
-            fc_list=model_cfg["REG_FC"],
-        )
+        self.cls_layers = make_fc_layers(pre_channel, self.num_class, model_cfg["CLS_FC"], dp_ratio)
+        self.reg_layers = make_fc_layers(pre_channel, self.box_coder.code_size * self.num_class,
+                                         model_cfg["REG_FC"], dp_ratio)
         self.init_weights()
 
     def init_weights(self):
@@ -64,7 +76,7 @@ class PVRCNNHead(RoIHeadTemplate):
         point_coords = batch_dict["point_coords"]
         point_features = batch_dict["point_features"] * batch_dict["point_cls_scores"].view(-1, 1)
 
-        grid = roi_grid_points(rois.reshape(-1, rois.shape[-1]), self.grid_size)  # (B*R, G^3, 3)
+        grid = VoxelRCNNHead.grid_points_of_rois(rois, self.grid_size)  # (B*R, G^3, 3)
         new_xyz = grid.reshape(-1, 3).contiguous()
         per_sample = grid.shape[0] // batch_size * grid.shape[1]
         new_xyz_batch_cnt = torch.full((batch_size,), per_sample, dtype=torch.int32, device=new_xyz.device)
@@ -79,13 +91,11 @@ class PVRCNNHead(RoIHeadTemplate):
 
     def forward(self, batch_dict: dict) -> dict:
         nms_config = self.model_cfg["NMS_CONFIG"]["TRAIN" if self.training else "TEST"]
-        targets_dict = self.proposal_layer(batch_dict, nms_config=nms_config)
+        self.proposal_layer(batch_dict, nms_config=nms_config)
         if self.training:
-            targets_dict = batch_dict.get("roi_targets_dict")
-            if targets_dict is None:
-                targets_dict = self.assign_targets(batch_dict)
-                batch_dict["rois"] = targets_dict["rois"]
-                batch_dict["roi_labels"] = targets_dict["roi_labels"]
+            targets_dict = self.assign_targets(batch_dict)
+            batch_dict["rois"] = targets_dict["rois"]
+            batch_dict["roi_labels"] = targets_dict["roi_labels"]
 
         pooled = self.roi_grid_pool(batch_dict)  # (B*R, G^3, C)
         n_rois = pooled.shape[0]
@@ -96,7 +106,7 @@ class PVRCNNHead(RoIHeadTemplate):
 
         if not self.training:
             cls_preds, box_preds = self.generate_predicted_boxes(
-                batch_size=batch_dict["batch_size"], rois=batch_dict["rois"], cls_preds=rcnn_cls, box_preds=rcnn_reg
+                batch_size=int(batch_dict["batch_size"]), rois=batch_dict["rois"], cls_preds=rcnn_cls, box_preds=rcnn_reg
             )
             batch_dict["batch_cls_preds"] = cls_preds
             batch_dict["batch_box_preds"] = box_preds

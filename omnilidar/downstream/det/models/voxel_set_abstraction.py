@@ -26,6 +26,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from omnilidar.downstream.det.models.box_utils import voxel_centers
 from omnilidar.downstream.det.models.pointnet2_stack import (
     batch_counts,
     build_local_aggregation_module,
@@ -36,23 +37,17 @@ from omnilidar.downstream.det.ops.sampling import farthest_point_sample
 VOXEL_SOURCES = ("x_conv1", "x_conv2", "x_conv3", "x_conv4")
 
 
-def voxel_centers(coords_zyx: torch.Tensor, downsample: int, voxel_size, point_cloud_range) -> torch.Tensor:
-    """Metric centres ``(N, 3)`` x, y, z of voxels given as ``(N, 3)`` z, y, x indices."""
-    size = coords_zyx.new_tensor(voxel_size, dtype=torch.float32) * downsample
-    origin = coords_zyx.new_tensor(point_cloud_range[0:3], dtype=torch.float32)
-    return (coords_zyx[:, [2, 1, 0]].float() + 0.5) * size + origin
-
-
 def sparse_coords_and_features(tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``(N, 4)`` [batch, z, y, x] indices and ``(N, C)`` features of a sparse map.
 
-    Accepts spconv's SparseConvTensor (``indices`` already batch, z, y, x) and our
-    :class:`omnilidar.sparse.tensor.SparseTensor` (``coords`` batch, x, y, z).
+    Accepts spconv's SparseConvTensor (``indices``, ``features``) and our
+    :class:`omnilidar.sparse.tensor.SparseTensor` (``coords``, ``feats``), which the
+    detection backbone builds on a (Z, Y, X) grid, so its rows are batch, z, y, x too.
     """
     if hasattr(tensor, "indices") and hasattr(tensor, "features"):
         return tensor.indices, tensor.features
     if hasattr(tensor, "coords") and hasattr(tensor, "feats"):
-        return tensor.coords[:, [0, 3, 2, 1]], tensor.feats
+        return tensor.coords, tensor.feats
     raise TypeError(f"not a sparse feature map: {type(tensor).__name__}")
 
 
@@ -76,7 +71,7 @@ def bilinear_interpolate(image: torch.Tensor, x: torch.Tensor, y: torch.Tensor) 
 
 class VoxelSetAbstraction(nn.Module):
     def __init__(self, model_cfg: dict, voxel_size, point_cloud_range, num_bev_features=None,
-                 num_rawpoint_features=None, **kwargs):
+                 num_rawpoint_features=None, backbone_channels: dict | None = None, **kwargs):
         super().__init__()
         self.model_cfg = model_cfg
         self.voxel_size = [float(v) for v in voxel_size]
@@ -106,8 +101,15 @@ class VoxelSetAbstraction(nn.Module):
                 continue
             layer_cfg = sa_cfg[name]
             self.downsample_times_map[name] = int(layer_cfg["DOWNSAMPLE_FACTOR"])
-            # OpenPCDet: the input width is INPUT_CHANNELS, else the first MLP width.
+            # The input width: INPUT_CHANNELS, else the backbone's width at that level, else
+            # (OpenPCDet's rule, the same for its published configs) the first MLP width.
             channels = layer_cfg.get("INPUT_CHANNELS")
+            known = (backbone_channels or {}).get(name)
+            if channels is None:
+                channels = known
+            elif known is not None and int(channels) != int(known):
+                raise ValueError(f"PFE.SA_LAYER.{name}.INPUT_CHANNELS is {channels} but the 3D backbone's "
+                                 f"{name} has {known} channels")
             if channels is None:
                 first = layer_cfg["MLPS"][0]
                 channels = first[0] if isinstance(first, (list, tuple)) else first
