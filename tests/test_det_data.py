@@ -253,3 +253,31 @@ def test_synthetic_pi3det_boxes_hold_points_and_scans_hold_objects(tmp_path):
             assert len(boxes) >= 3, f"{platform} frame {info['frame_id']} holds {len(boxes)} boxes"
             inside = points_in_boxes_mask(torch.from_numpy(scan.points[:, :3]), torch.from_numpy(boxes)).sum(0)
             assert int(inside.min()) >= 1, f"{platform} frame {info['frame_id']}: a box holds no point"
+
+
+def test_box_labeler_imports_an_openpcdet_checkpoint_weights_only(tmp_path):
+    import torch
+
+    from omnilidar.downstream.det.checkpoints import load_payload
+    from omnilidar.downstream.det.labeler import import_labeler
+    from omnilidar.downstream.det.model_config import build, model_config
+
+    det = det_section()
+    yaml_path = "config/detectors/voxel_rcnn.yaml"
+
+    def openpcdet_checkpoint(platform, path):
+        cfg = platform_config(det, platform)
+        state = build(model_config(det, "voxel_rcnn", cfg, yaml_path), cfg).state_dict()
+        torch.save({"model_state": state, "optimizer_state": {}, "epoch": 80, "it": 1000}, path)
+        return state
+
+    state = openpcdet_checkpoint("drone", tmp_path / "drone.pth")
+    import_labeler(det, "voxel_rcnn", "drone", yaml_path, tmp_path / "drone.pth", tmp_path / "labeler.pt")
+    payload = load_payload(tmp_path / "labeler.pt")
+    assert payload["train"]["imported_from"].endswith("drone.pth")
+    assert all(torch.equal(payload["model_state"][k], v) for k, v in state.items())
+    # A Quadruped (Car, Pedestrian) checkpoint does not fit the Drone (Car) labeler: one clear error.
+    openpcdet_checkpoint("quadruped", tmp_path / "quad.pth")
+    with pytest.raises(InputError, match="quad.pth.*expects"):
+        import_labeler(det, "voxel_rcnn", "drone", yaml_path, tmp_path / "quad.pth", tmp_path / "bad.pt")
+    assert not (tmp_path / "bad.pt").exists()

@@ -19,11 +19,13 @@ def import_labeler(det: dict, detector: str, platform: str, model_yaml: str, che
     from omnilidar.downstream.det.checkpoints import load_openpcdet_state, save_payload
     from omnilidar.downstream.det.data_config import platform_config
     from omnilidar.downstream.det.model_config import build, model_config
+    from omnilidar.downstream.det.models.detector import adapt_spconv_weights
 
     cfg = platform_config(det, platform)
     model = model_config(det, detector, cfg, model_yaml)
-    state = load_openpcdet_state(checkpoint)
     net = build(model, cfg)
+    # spconv 1.x sparse weights (k, k, k, in, out) are permuted as OpenPCDet does.
+    state = adapt_spconv_weights(load_openpcdet_state(checkpoint), net.state_dict())
     missing, unexpected = [], []
     own = net.state_dict()
     for key, value in own.items():
