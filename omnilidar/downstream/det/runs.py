@@ -6,14 +6,14 @@ from pathlib import Path
 
 from omnilidar.errors import InputError
 
-SCHEMA = "downstream.schema.yaml"
+DATA_FILES = ("workflow/schemas/downstream.schema.yaml", "workflow/schemas/detection.schema.yaml")  # run time reads
 
 
 def det_settings(settings: dict) -> dict:
     """The ``downstream.det`` section from ``--settings`` (validated, defaults filled)."""
     from omnilidar.config import validate
 
-    return validate({"det": dict(settings)}, SCHEMA, source="--settings (downstream.det)")["det"]
+    return validate({"det": dict(settings)}, "downstream.schema.yaml", source="--settings (downstream.det)")["det"]
 
 
 def platform_records(index_path: str | Path, platform: str, split: str) -> list[dict]:
