@@ -10,43 +10,7 @@
 #   evaluation                data keys + evaluation
 # A platform's generated domain is the domains config key of the same name (drone, quadruped).
 
-DET = f"{DATA}/detection"
-PSEUDO_BOXES = f"{DATA}/pseudo_boxes"
-DET_SECTION = DOWNSTREAM["det"]
-PI3DET_EXP = DET_SECTION["experiments"]["pi3det"]
-DET_DATA_KEYS = ("device", "platforms", "point_cloud_range", "voxel_size", "voxels", "anchors")
-DETECTOR_NAMES = r"voxel_rcnn|pv_rcnn"
-PI3DET_PLATFORMS = r"drone|quadruped"
-
-
-def det_settings(*keys, detector=None):
-    """Data keys plus ``keys`` of downstream.det (and one detector's entry) as one JSON value."""
-    wanted = {k: DET_SECTION[k] for k in (*DET_DATA_KEYS, *keys)}
-    if detector is not None:
-        wanted["detectors"] = {detector: DET_SECTION["detectors"][detector]}
-    return json.dumps(wanted, sort_keys=True)
-
-
-def detector_yaml(detector):
-    return DET_SECTION["detectors"][detector]["config"]
-
-
-def labeler_checkpoint(platform):
-    return DET_SECTION["labeler"]["checkpoint"][platform]
-
-
-def pseudo_box_shards(platform):
-    """Pseudo-box shard of every sample shard of the platform's domain (same label and shard names)."""
-    return [d.replace(f"{DATA}/samples/", f"{PSEUDO_BOXES}/", 1) for d in domain_sample_shards(platform)]
-
-
-def label_platform(label):
-    """The platform whose domain's samples carry ``label`` (Drone -> drone)."""
-    return {domain_label(p): p for p in ("drone", "quadruped") if p in DOMAIN_NAMES}[label]
-
-
-def det_run(platform, detector, pct, role):
-    return f"{DET}/{platform}/{detector}_{pct}pct_{role}"
+# DET, PSEUDO_BOXES, DET_SECTION, PI3DET_EXP and the detection helpers are in rules/common.smk.
 
 
 rule train_box_labeler:
