@@ -17,6 +17,7 @@ include: "rules/generator.smk"
 include: "rules/evaluation_sets.smk"
 include: "rules/evaluation.smk"
 include: "rules/downstream.smk"
+include: "rules/detection.smk"
 
 
 onsuccess:

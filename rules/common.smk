@@ -295,6 +295,7 @@ def data_source(*datasets):
 RESULT_DATASETS = {
     "semkitti_*pct, semkittic, semanticstf, gda_curve": ("semantickitti",),
     "nusc_beam32_*pct": ("nuscenes",),
+    "pi3det_*pct": ("pi3det",),
     "kitti360_generation": ("kitti360",),
     "generation_quality, ablation, tradeoff, generator_evidence": (),
 }
@@ -409,3 +410,44 @@ def curve_evaluations():
     curve = EXPERIMENTS["gda_curve"]
     runs = ["real" if n == 0 else f"gda{n}-{curve['domain']}" for n in curve_counts()]
     return [run_evaluation("semantickitti", curve["backbone"], curve["percent"], r, "val") for r in runs]
+
+
+# Detection helpers (rules/detection.smk), after what they read.
+
+DET = f"{DATA}/detection"
+PSEUDO_BOXES = f"{DATA}/pseudo_boxes"
+DET_SECTION = DOWNSTREAM["det"]
+PI3DET_EXP = DET_SECTION["experiments"]["pi3det"]
+DET_DATA_KEYS = ("device", "platforms", "point_cloud_range", "voxel_size", "voxels", "anchors")
+DETECTOR_NAMES = r"voxel_rcnn|pv_rcnn"
+PI3DET_PLATFORMS = r"drone|quadruped"
+
+
+def det_settings(*keys, detector=None):
+    """Data keys plus ``keys`` of downstream.det (and one detector's entry) as one JSON value."""
+    wanted = {k: DET_SECTION[k] for k in (*DET_DATA_KEYS, *keys)}
+    if detector is not None:
+        wanted["detectors"] = {detector: DET_SECTION["detectors"][detector]}
+    return json.dumps(wanted, sort_keys=True)
+
+
+def detector_yaml(detector):
+    return DET_SECTION["detectors"][detector]["config"]
+
+
+def labeler_checkpoint(platform):
+    return DET_SECTION["labeler"]["checkpoint"][platform]
+
+
+def pseudo_box_shards(platform):
+    """Pseudo-box shard of every sample shard of the platform's domain (same label and shard names)."""
+    return [d.replace(f"{DATA}/samples/", f"{PSEUDO_BOXES}/", 1) for d in domain_sample_shards(platform)]
+
+
+def label_platform(label):
+    """The platform whose domain's samples carry ``label`` (Drone -> drone)."""
+    return {domain_label(p): p for p in ("drone", "quadruped") if p in DOMAIN_NAMES}[label]
+
+
+def det_run(platform, detector, pct, role):
+    return f"{DET}/{platform}/{detector}_{pct}pct_{role}"

@@ -248,7 +248,7 @@ rule semkitti_result:
     params:
         experiment=lambda w: f"semkitti_{w.pct}pct",
         kind="semkitti",
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         code=result_code("gda-result"),
@@ -277,7 +277,7 @@ rule semkittic_result:
     params:
         experiment="semkittic",
         kind="semkittic",
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         code=result_code("gda-result"),
@@ -308,7 +308,7 @@ rule nusc_beam32_result:
     params:
         experiment=lambda w: f"nusc_beam32_{w.pct}pct",
         kind="nusc_beam32",
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("nuscenes"),
         code=result_code("gda-result"),
@@ -338,7 +338,7 @@ rule semanticstf_result:
     params:
         experiment="semanticstf",
         kind="semanticstf",
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         standin="" if EXPERIMENTS["semanticstf"]["subsets"] else "--standin",
@@ -368,7 +368,7 @@ rule gda_curve:
         table="results/tables/gda_curve.html",
         figure="results/figures/gda_curve.png",
     params:
-        settings=settings("downstream"),
+        settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         code=result_code("gda-curve"),

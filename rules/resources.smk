@@ -107,6 +107,12 @@ _RULES = {
     "evaluate_segmentor": (config["downstream"]["device"], 8000, 60, 2),
     "gda_result": (False, 1000, 10, 1),
     "gda_curve": (False, 1000, 10, 1),
+    # Detection (rules/detection.smk): importing a user's labeler is a small CPU job.
+    "train_box_labeler": (config["downstream"]["det"]["device"], 16000, _DOWN_H, _downstream_workers("det", "labeler", "schedule")),
+    "pseudo_box": (config["downstream"]["det"]["device"], 8000, 60, 2),
+    "train_detector": (config["downstream"]["det"]["device"], 16000, _DOWN_H, _downstream_workers("det", "schedule")),
+    "evaluate_detector": (config["downstream"]["det"]["device"], 8000, 60, 2),
+    "pi3det_result": (False, 1000, 10, 1),
 }
 
 

@@ -9,10 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 
-# Slack (m) of the float32 bounding-square prefilter; the exact test decides.
-_PREFILTER_MARGIN = 1e-3
-
-
 def _as_boxes(boxes) -> np.ndarray:
     arr = getattr(boxes, "boxes", boxes)  # Boxes or a plain (M, 7) array
     arr = np.asarray(arr, dtype=np.float64)
@@ -25,37 +21,21 @@ def points_in_boxes(points: np.ndarray, boxes) -> np.ndarray:
     """(N, M) bool: point n lies inside box m (faces inclusive).
 
     ``points`` is (N, >=3) (only x, y, z are used); ``boxes`` is a Boxes or an
-    (M, 7) array. Per box, one vectorised pass over x picks the points within
-    the box's bounding square, and the exact rotated test (float64) runs on
-    those candidates only: O(N M) cheap compares plus work proportional to
-    the points near boxes, with no (N, M) float temporaries.
+    (M, 7) array. The numpy face of the detection operator
+    ``omnilidar.downstream.det.ops.points.points_in_boxes_mask`` (one
+    implementation: a float32 bounding-square prefilter, then the exact rotated
+    test in float64 on the candidates only).
     """
+    import torch
+
+    from omnilidar.downstream.det.ops.points import points_in_boxes_mask
+
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise ValueError(f"points must be (N, >=3), got {pts.shape}")
     b = _as_boxes(boxes)
-    n, m = len(pts), len(b)
-    out = np.zeros((n, m), dtype=bool)
-    if n == 0 or m == 0:
-        return out
-    x = np.ascontiguousarray(pts[:, 0], dtype=np.float32)
-    y = np.ascontiguousarray(pts[:, 1], dtype=np.float32)
-    reach = 0.5 * np.hypot(b[:, 3], b[:, 4]) + _PREFILTER_MARGIN  # half diagonal in x-y
-    for j, (cx, cy, cz, dx, dy, dz, heading) in enumerate(b):
-        cand = np.flatnonzero(np.abs(x - np.float32(cx)) <= reach[j])
-        cand = cand[np.abs(y[cand] - np.float32(cy)) <= reach[j]]
-        if cand.size == 0:
-            continue
-        p = pts[cand, :3].astype(np.float64)
-        ox, oy = p[:, 0] - cx, p[:, 1] - cy
-        c, s = np.cos(heading), np.sin(heading)
-        inside = (
-            (np.abs(ox * c + oy * s) <= 0.5 * dx)
-            & (np.abs(oy * c - ox * s) <= 0.5 * dy)
-            & (np.abs(p[:, 2] - cz) <= 0.5 * dz)
-        )
-        out[cand[inside], j] = True
-    return out
+    xyz = pts[:, :3] if pts.dtype in (np.float32, np.float64) else pts[:, :3].astype(np.float64)
+    return points_in_boxes_mask(torch.from_numpy(np.ascontiguousarray(xyz)), torch.from_numpy(b)).numpy()
 
 
 def box_corners(boxes) -> np.ndarray:

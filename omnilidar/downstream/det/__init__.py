@@ -1,0 +1,1 @@
+"""LiDAR 3D object detection: box and point operators, detectors (OpenPCDet layout)."""

@@ -1,0 +1,66 @@
+"""pi3det-result: assembling a Pi3DET target from evaluate-detector outputs (JSON + figure)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from workflow_helpers import ROOT
+
+
+def evaluation(detector: str, role: str, ap: float, classes=("Car", "Pedestrian")) -> dict:
+    curve = list(np.linspace(1.0, 0.0, 41).clip(0, 1) * ap / 100)
+    return {"checkpoint": f"{detector}_{role}.pt", "detector": detector, "platform": "quadruped",
+            "split": "quadruped_val", "frames": 30, "classes": list(classes),
+            "ap": {c: {"3d_R11@0.5": ap, "3d_R40@0.5": ap - 1, "bev_R11@0.5": ap + 1, "bev_R40@0.5": ap,
+                       "precision_3d@0.5": curve, "gt_boxes": 40, "detections": 80} for c in classes},
+            "recall": {"roi_0.3": 0.5, "rcnn_0.3": 0.6, "rcnn_0.7": 0.1, "gt": 40},
+            "train": {"seconds": 12.0, "iterations": 30, "num_real": 1, "num_generated": 0 if role != "gda" else 16,
+                      "mixing": {"mode": "concat"}, "info": {"role": role}},
+            "timings": {"train_seconds": 12.0, "inference_seconds_per_frame": 0.2, "evaluate_seconds": 7.0}}
+
+
+def test_result_compares_runs_and_records_the_labeler(tmp_path):
+    paths = []
+    for det, sup, gda in (("voxel_rcnn", 0.5, 20.0), ("pv_rcnn", 1.0, 3.0)):
+        for role, ap in (("supervised_only", sup), ("gda", gda)):
+            p = tmp_path / f"{det}_{role}.json"
+            p.write_text(json.dumps(evaluation(det, role, ap)))
+            paths.append(p)
+    labeler = tmp_path / "labeler.json"
+    labeler.write_text(json.dumps(evaluation("voxel_rcnn", "labeler", 55.0)))
+    shard = tmp_path / "pseudo" / "shard_0"
+    shard.mkdir(parents=True)
+    (shard / "sidecar.json").write_text(json.dumps({"scans": 16, "boxes": {"Car": 30, "Pedestrian": 4},
+                                                    "score_threshold": 0.3, "seconds": 4.5}))
+    cmd = [sys.executable, "-m", "omnilidar.cli", "pi3det-result", "--experiment", "pi3det_quadruped_1pct",
+           "--platform", "quadruped", "--percent", "1", "--settings", "{}", "--data-source",
+           json.dumps({"pi3det": {"root": "data/synthetic/pi3det", "kind": "synthetic"}}),
+           "--evaluations", *map(str, paths), "--labeler-evaluation", str(labeler), "--pseudo-boxes", str(shard),
+           "--out", str(tmp_path / "r.json"), "--figure", str(tmp_path / "r.png")]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr[-2000:]
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert {"experiment", "config_hash", "code_hash", "data_source", "device", "seeds", "timings"} <= set(doc)
+    vx = doc["runs"]["voxel_rcnn"]
+    assert vx["gda_gain"]["Car"]["3d_R11@0.5"] == 19.5 and vx["gda"]["train_frames"]["generated"] == 16
+    assert vx["paper_3d_R11@0.5"]["Pedestrian"] == {"supervised_only": 0.91, "gda": 33.05}
+    assert doc["runs"]["pv_rcnn"]["paper_3d_R11@0.5"] is None
+    assert "precision_3d@0.5" not in vx["gda"]["ap"]["Car"]  # curves go to the figure only
+    assert doc["labeler"]["val_ap"]["Car"]["3d_R11@0.5"] == 55.0 and doc["labeler"]["pseudo_boxes"]["Car"] == 30
+    assert doc["timings"]["pseudo_boxes"] == 4.5 and doc["timings"]["train_pv_rcnn_gda"] == 12.0
+    assert (tmp_path / "r.png").stat().st_size > 10_000
+
+
+def test_result_needs_both_runs_of_each_detector(tmp_path):
+    p = tmp_path / "only.json"
+    p.write_text(json.dumps(evaluation("voxel_rcnn", "gda", 3.0)))
+    cmd = [sys.executable, "-m", "omnilidar.cli", "pi3det-result", "--experiment", "x", "--platform", "quadruped",
+           "--percent", "1", "--data-source", json.dumps({"pi3det": {"root": "r", "kind": "synthetic"}}), "--evaluations", str(p), "--labeler-evaluation", str(p),
+           "--out", str(tmp_path / "r.json"), "--figure", str(tmp_path / "r.png")]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 2 and "no supervised_only evaluation" in res.stderr
+    assert not (tmp_path / "r.json").exists()
