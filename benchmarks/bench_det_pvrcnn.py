@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from omnilidar.downstream.det.models import build_detector
+from omnilidar.downstream.det.models.detector import build_detector
 from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import batch_counts, build_local_aggregation_module
 from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead

@@ -178,7 +178,8 @@ rule pi3det_result:
         pseudo=lambda w: pseudo_box_shards(w.platform),
     output:
         json="results/pi3det_{platform}_{pct}pct.json",
-        figure=report("results/figures/pi3det_{platform}_{pct}pct.png", caption="../workflow/report/detection.rst", category="Detection"),
+        figure="results/figures/pi3det_{platform}_{pct}pct.png",
+        table="results/tables/pi3det_{platform}_{pct}pct.html",
     wildcard_constraints:
         platform=PI3DET_PLATFORMS,
         pct=r"\d+",
@@ -187,7 +188,7 @@ rule pi3det_result:
         settings=lambda w: json.dumps(DET_SECTION, sort_keys=True),
         seed=config["seed"],
         data_source=data_source("pi3det"),
-        code=code("pi3det-result"),
+        code=result_code("pi3det-result"),
     log:
         "logs/detection/pi3det_{platform}_{pct}pct.log",
     benchmark:
@@ -197,11 +198,11 @@ rule pi3det_result:
     resources:
         **job_resources("pi3det_result"),
     shell:
-        "omnilidar pi3det-result --experiment {params.experiment} --platform {wildcards.platform} "
+        with_table("omnilidar pi3det-result --experiment {params.experiment} --platform {wildcards.platform} "
         "--percent {wildcards.pct} --settings {params.settings:q} --seed {params.seed} "
         "--data-source {params.data_source:q} --evaluations {input.evaluations} "
         "--labeler-evaluation {input.labeler} --pseudo-boxes {input.pseudo} "
-        "--out {output.json} --figure {output.figure} > {log} 2>&1"
+        "--out {output.json} --figure {output.figure} > {log} 2>&1")
 
 
 rule detection:

@@ -19,6 +19,7 @@ REPORT_SECTIONS = (
     (r"ablation", "Generation", "ablation.rst"),
     (r"kitti360_generation", "Generation", "kitti360_generation.rst"),
     (r"generator_evidence", "Generation", "generator_evidence.rst"),
+    (r"pi3det_\w+_\d+pct", "Detection", "detection.rst"),
 )
 
 

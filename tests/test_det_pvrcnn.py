@@ -12,7 +12,7 @@ import torch.nn.functional as F
 import yaml
 from det_pvrcnn_keys import pv_rcnn_kitti_keys
 
-from omnilidar.downstream.det.models import build_detector
+from omnilidar.downstream.det.models.detector import build_detector
 from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import StackSAModuleMSG
 from omnilidar.downstream.det.models.voxel_rcnn_head import VoxelRCNNHead
