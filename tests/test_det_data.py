@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from omnilidar.config import validate
-from omnilidar.downstream.det.augment import augment, limit_heading, rotate_about_z
+from omnilidar.downstream.det.augment import augment, limit_heading, rotate_about_z, rotate_objects
 from omnilidar.downstream.det.data_config import anchor_generator_config, platform_config
 from omnilidar.downstream.det.dataset import DetCollate, DetScanDataset
 from omnilidar.downstream.det.voxelize import points_to_voxels
@@ -88,14 +88,9 @@ def test_augmentations_move_points_and_boxes_together():
     boxes = np.array([[10, 3, -1, 4, 2, 1.5, 0.3], [20, -5, -1, 1, 1, 2, -2.0]], np.float32)
     # Points inside each box in its own frame.
     local = rng.uniform(-0.45, 0.45, (200, 3)).astype(np.float32)
-    pts = []
-    for b in boxes:
-        c, s = np.cos(b[6]), np.sin(b[6])
-        xyz = local * b[3:6]
-        pts.append(np.stack([xyz[:, 0] * c - xyz[:, 1] * s + b[0], xyz[:, 0] * s + xyz[:, 1] * c + b[1],
-                             xyz[:, 2] + b[2], np.zeros(len(xyz))], 1))
-    pts = np.concatenate(pts).astype(np.float32)
-    settings = {"flip_x": True, "rotation": [-0.8, 0.8], "scaling": [0.9, 1.1]}
+    pts = np.concatenate([box_points(b, local) for b in boxes])
+    settings = {"object_rotation": {"probability": 0.8, "range": [-0.4, 0.4]}, "flip_x": True,
+                "rotation": [-0.8, 0.8], "scaling": [0.9, 1.1]}
     for seed in range(6):
         p2, b2 = augment(pts, boxes, settings, np.random.default_rng(seed))
         for k, b in enumerate(b2):
@@ -107,6 +102,45 @@ def test_augmentations_move_points_and_boxes_together():
     p3, b3 = rotate_about_z(pts, boxes, np.pi / 2)
     np.testing.assert_allclose(b3[0, :2], [-3, 10], atol=1e-5)
     np.testing.assert_allclose(limit_heading(np.array([np.pi, -np.pi, 3 * np.pi / 2])), [-np.pi, -np.pi, -np.pi / 2])
+
+
+def box_points(box, local):
+    """Points at box-frame offsets ``local`` (fractions of the size) of one lidar box."""
+    c, s = np.cos(box[6]), np.sin(box[6])
+    xyz = local * box[3:6]
+    return np.stack([xyz[:, 0] * c - xyz[:, 1] * s + box[0], xyz[:, 0] * s + xyz[:, 1] * c + box[1],
+                     xyz[:, 2] + box[2], np.ones(len(xyz))], 1).astype(np.float32)
+
+
+def test_object_rotation_turns_free_boxes_with_their_points_and_clears_their_new_footprint():
+    rng = np.random.default_rng(3)
+    free = np.array([10, 0, -1, 4, 1, 1.5, 0], np.float32)  # long and thin: turning sweeps new ground
+    # Two boxes side by side with 0.1 m between them: almost every turn of either hits the other.
+    tight = np.array([[30, 0, -1, 4, 2, 1.5, 0], [30, 2.1, -1, 4, 2, 1.5, 0]], np.float32)
+    boxes = np.concatenate([free[None], tight])
+    own = box_points(free, rng.uniform(-0.45, 0.45, (300, 3)))
+    # Background points on the ground around the free box (outside it now).
+    ground = np.stack([rng.uniform(7, 13, 2000), rng.uniform(-2, 2, 2000), np.full(2000, -1.0),
+                       np.zeros(2000)], 1).astype(np.float32)
+    ground = ground[(np.abs(ground[:, 0] - 10) > 2.05) | (np.abs(ground[:, 1]) > 0.55)]
+    tight_pts = np.concatenate([box_points(b, rng.uniform(-0.45, 0.45, (100, 3))) for b in tight])
+    points = np.concatenate([own, ground, tight_pts])
+    p2, b2 = rotate_objects(points, boxes, 1.0, (0.3, 0.38), np.random.default_rng(0))
+    turn = b2[0, 6] - boxes[0, 6]
+    assert 0.3 <= turn <= 0.38
+    np.testing.assert_array_equal(b2[0, :6], boxes[0, :6])
+    np.testing.assert_array_equal(b2[1:], tight)  # every try collides: untouched
+    # The box's own points turned with it (all still inside, by intensity 1), none left behind.
+    from omnilidar.downstream.det.augment import _inside
+    inside_new = _inside(p2, b2[0])
+    assert int(np.sum(p2[inside_new, 3] == 1)) == 300 and not np.any(p2[inside_new, 3] == 0)
+    # Ground points the turned box now covers were dropped, the others kept.
+    assert len(p2) < len(points) and len(p2) > len(points) - 400
+    # Same generator, same result; probability 0 changes nothing.
+    p3, b3 = rotate_objects(points, boxes, 1.0, (0.3, 0.38), np.random.default_rng(0))
+    np.testing.assert_array_equal(p2, p3) and np.testing.assert_array_equal(b2, b3)
+    p4, b4 = rotate_objects(points, boxes, 0.0, (0.3, 0.38), np.random.default_rng(0))
+    np.testing.assert_array_equal(p4, points) and np.testing.assert_array_equal(b4, boxes)
 
 
 def write_platform(root, platform_name, frames):

@@ -1,16 +1,62 @@
 """Training augmentations of OpenPCDet's KITTI / Pi3DET configs, applied to points and boxes together.
 
-In OpenPCDet's order: random world flip along x (y -> -y, heading -> -heading,
+In the order of Pi3DET's dataset config: random object rotation (ST3D's
+``rotate_objects``: each box with probability p turns about its own centre by
+the first of 50 draws from U[lo, hi] that overlaps no other box in BEV; the
+points inside it turn with it and background points the turned box now covers
+are dropped), random world flip along x (y -> -y, heading -> -heading,
 probability 0.5), random world rotation about z by U[lo, hi] (points and box
 centres rotate counter-clockwise, headings add the angle), random world scaling
 by U[lo, hi] (coordinates and box sizes). Ground-truth sampling is not
-implemented (it is off in the CPU configs; the report says so). Every draw
-comes from the generator passed in.
+implemented (Pi3DET's config does not use it). Every draw comes from the
+generator passed in.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from omnilidar.downstream.det.ops.iou import boxes_iou_bev
+from omnilidar.downstream.det.ops.points import points_in_boxes_mask
+
+OBJECT_ROTATION_TRIES = 50  # ST3D / Pi3DET num_try
+
+
+def _inside(points: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(N,) bool: points inside one box."""
+    return points_in_boxes_mask(torch.from_numpy(np.ascontiguousarray(points[:, :3], np.float32)),
+                                torch.from_numpy(box.reshape(1, 7).astype(np.float32)))[:, 0].numpy()
+
+
+def rotate_objects(points: np.ndarray, boxes: np.ndarray, probability: float, noise: tuple[float, float],
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Turn boxes (and their points) about their own centres where the turned box collides with no other."""
+    n = len(boxes)
+    chosen = rng.uniform(0, 1, n) < probability
+    angles = rng.uniform(noise[0], noise[1], (n, OBJECT_ROTATION_TRIES))
+    points, boxes = points.copy(), boxes.copy()
+    for k in np.flatnonzero(chosen):
+        tries = np.repeat(boxes[k:k + 1], OBJECT_ROTATION_TRIES, axis=0)
+        tries[:, 6] += angles[k]
+        first = 0
+        if n > 1:
+            others = np.delete(boxes, k, axis=0)
+            overlap = boxes_iou_bev(torch.from_numpy(tries.astype(np.float32)),
+                                    torch.from_numpy(others.astype(np.float32))).amax(dim=1).numpy()
+            free = np.flatnonzero(overlap == 0)
+            if len(free) == 0:
+                continue
+            first = int(free[0])
+        was_inside = _inside(points, boxes[k])
+        c, s = np.cos(angles[k, first]), np.sin(angles[k, first])
+        d = points[was_inside, :2].astype(np.float64) - boxes[k, :2]
+        points[was_inside, 0] = d[:, 0] * c - d[:, 1] * s + boxes[k, 0]
+        points[was_inside, 1] = d[:, 0] * s + d[:, 1] * c + boxes[k, 1]
+        now_inside = _inside(points, tries[first])
+        points = points[was_inside == now_inside]
+        boxes[k] = tries[first]
+    return points, boxes
 
 
 def flip_along_x(points: np.ndarray, boxes: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -42,7 +88,10 @@ def scale(points: np.ndarray, boxes: np.ndarray, factor: float) -> tuple[np.ndar
 
 def augment(points: np.ndarray, boxes: np.ndarray, settings: dict,
             rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Apply the configured augmentations (``flip_x``, ``rotation``, ``scaling``) in OpenPCDet's order."""
+    """Apply the configured augmentations (``object_rotation``, ``flip_x``, ``rotation``, ``scaling``) in order."""
+    objects = settings.get("object_rotation")
+    if objects and objects["probability"] > 0 and len(boxes):
+        points, boxes = rotate_objects(points, boxes, objects["probability"], objects["range"], rng)
     if settings["flip_x"]:
         points, boxes = flip_along_x(points, boxes, rng)
     lo, hi = settings["rotation"]
