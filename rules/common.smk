@@ -362,7 +362,8 @@ def generated_pseudo_labels(domains):
 GDA_RESULT = (
     "omnilidar gda-result --experiment {params.experiment} --kind {params.kind} --settings {params.settings:q} "
     "--seed {params.seed} --data-source {params.data_source:q} --evaluations {input.evaluations} "
-    "--pseudo-labels {input.pseudo} --out {output.json} --figure {output.figure} > {log} 2>&1"
+    "--pseudo-labels {input.pseudo} --labeler-evaluation {input.labeler} --out {output.json} "
+    "--figure {output.figure} > {log} 2>&1"
 )
 GDA_RESULT_STANDIN = GDA_RESULT.replace("> {log}", "{params.standin} > {log}")
 

@@ -15,6 +15,7 @@
 # whose helpers read them.
 SUBSETS = f"{DATA}/subsets"
 LABELER = f"{DATA}/labeler/semantickitti.pt"
+LABELER_VAL = f"{DATA}/labeler/semantickitti.val.json"  # its own scores, recorded in every GDA result
 GDA_CURVE = EXPERIMENTS["gda_curve"]
 TRAINING_KEYS = ("backend", "device", "voxel_size", "max_voxels", "max_points", "models", "schedule", "augmentation")
 
@@ -71,6 +72,31 @@ rule train_labeler:
     shell:
         "omnilidar train-labeler --index {input.index} --settings {params.settings:q} --seed {params.seed} "
         "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
+
+
+rule evaluate_labeler:
+    """The labeler's own per-class IoU and mIoU on the SemanticKITTI val split (the quality of
+    every pseudo-label a GDA run learns from)."""
+    input:
+        checkpoint=LABELER,
+        index=f"{DATA}/index/semantickitti.json",
+    output:
+        LABELER_VAL,
+    params:
+        settings=downstream_settings("backend", "device", "evaluation"),
+        code=code("evaluate-segmentor"),
+    log:
+        "logs/downstream/evaluate/labeler.val.log",
+    benchmark:
+        "benchmarks/out/downstream/evaluate/labeler.val.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        **job_resources("evaluate_segmentor"),
+    shell:
+        "omnilidar evaluate-segmentor --checkpoint {input.checkpoint} --index {input.index} --split val "
+        "--settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
 
 
 rule pseudo_label:
@@ -239,6 +265,7 @@ rule semkitti_result:
         evaluations=lambda w: comparison("semantickitti", EXPERIMENTS["semkitti"]["backbones"], w.pct,
                                          [EXPERIMENTS["semkitti"]["domain"]], "val"),
         pseudo=generated_pseudo_labels([EXPERIMENTS["semkitti"]["domain"]]),
+        labeler=LABELER_VAL,
     output:
         json="results/semkitti_{pct}pct.json",
         table="results/tables/semkitti_{pct}pct.html",
@@ -270,6 +297,7 @@ rule semkittic_result:
         evaluations=comparison("semantickitti", [EXPERIMENTS["semkittic"]["backbone"]],
                                EXPERIMENTS["semkittic"]["percent"], EXPERIMENTS["semkittic"]["domains"], "corrupted"),
         pseudo=generated_pseudo_labels(EXPERIMENTS["semkittic"]["domains"]),
+        labeler=LABELER_VAL,
     output:
         json="results/semkittic.json",
         table="results/tables/semkittic.html",
@@ -299,6 +327,7 @@ rule nusc_beam32_result:
         evaluations=lambda w: comparison("nuscenes", EXPERIMENTS["nusc_beam32"]["backbones"], w.pct,
                                          [EXPERIMENTS["nusc_beam32"]["domain"]], "val"),
         pseudo=generated_pseudo_labels([EXPERIMENTS["nusc_beam32"]["domain"]]),
+        labeler=LABELER_VAL,
     output:
         json="results/nusc_beam32_{pct}pct.json",
         table="results/tables/nusc_beam32_{pct}pct.html",
@@ -331,6 +360,7 @@ rule semanticstf_result:
         evaluations=comparison("semantickitti", [EXPERIMENTS["semanticstf"]["backbone"]], 100,
                                EXPERIMENTS["semanticstf"]["domains"], "weather"),
         pseudo=generated_pseudo_labels(EXPERIMENTS["semanticstf"]["domains"]),
+        labeler=LABELER_VAL,
     output:
         json="results/semanticstf.json",
         table="results/tables/semanticstf.html",

@@ -209,3 +209,37 @@ def test_experiment_comparison_and_robustness():
     assert res["minkunet"]["gda"]["normalised_by_supervised_only"]["mce"] == pytest.approx(100 * 1.0 / 1.2)
     assert res["minkunet"]["gda"]["normalised_by_robo3d_minkunet18"]["ce"]["fog"] == pytest.approx(
         100 * 1.0 / (2 * (1 - 0.5587)))
+
+
+def test_gda_result_records_the_labelers_own_quality(tmp_path, capsys):
+    """A GDA result names the labeler's val mIoU and per-class IoU beside the runs."""
+    import argparse
+    import json
+
+    from omnilidar.commands import gda_result
+
+    paths = []
+    for doc in (_eval("minkunet", "supervised_only", 0.2), _eval("minkunet", "gda", 0.3),
+                {**_eval("minkunet", "labeler", 0.45), "checkpoint": "data/labeler/semantickitti.pt"}):
+        path = tmp_path / f"{doc['train']['info']['role']}.json"
+        path.write_text(json.dumps(doc))
+        paths.append(str(path))
+    parser = argparse.ArgumentParser()
+    gda_result.add_arguments(parser)
+    args = parser.parse_args(["--experiment", "semkitti_1pct", "--kind", "semkitti", "--settings", "{}",
+                              "--seed", "0", "--data-source", '{"semantickitti": {"root": "data/synthetic/semantickitti", "kind": "synthetic"}}',
+                              "--evaluations", *paths[:2],
+                              "--labeler-evaluation", paths[2], "--out", str(tmp_path / "r.json"),
+                              "--figure", str(tmp_path / "r.png")])
+    assert gda_result.run(args) == 0
+    labeler = json.loads((tmp_path / "r.json").read_text())["labeler"]
+    assert labeler["val_miou"] == pytest.approx(0.45) and labeler["val_iou"]["car"] == pytest.approx(0.45)
+    assert labeler["label_space"] == "semantickitti" and labeler["evaluation"] == paths[2]
+    assert "labeler (writes every pseudo-label): val mIoU 45.00" in capsys.readouterr().out
+    # An evaluation without the val set is one clear error naming the file.
+    bad = json.loads(open(paths[2]).read())
+    bad["sets"] = {"fog/light": bad["sets"]["val"]}
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    args.labeler_evaluation = str(tmp_path / "bad.json")
+    with pytest.raises(InputError, match="no 'val' set"):
+        gda_result.run(args)

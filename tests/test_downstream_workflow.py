@@ -70,7 +70,7 @@ def _jobs(workdir, *args):
 
 def test_headline_dag(workdir):
     jobs = _jobs(workdir, "results/semkitti_1pct.json")
-    assert jobs["train_labeler"] == 1
+    assert jobs["train_labeler"] == 1 and jobs["evaluate_labeler"] == 1  # its own val scores join the result
     assert jobs["train_supervised"] == 2 and jobs["train_gda"] == 2  # MinkUNet, SPVCNN
     assert jobs["evaluate_segmentor"] == 4
     assert jobs["make_subset"] == 1 and jobs["semkitti_result"] == 1
@@ -183,7 +183,7 @@ def test_mixing_change_reruns_only_gda_runs(completed):
 def test_labeler_change_reruns_labeler_pseudo_labels_and_gda_not_supervised(completed):
     wd, cfg = completed
     jobs = _with_change(wd, cfg, {"downstream.labeler.schedule.iterations": 81})
-    assert {"train_labeler", "pseudo_label", "train_gda"} <= set(jobs)
+    assert {"train_labeler", "evaluate_labeler", "pseudo_label", "train_gda"} <= set(jobs)
     assert "train_supervised" not in jobs and "sample_domain" not in jobs
 
 
@@ -191,5 +191,5 @@ def test_generator_change_spares_supervised_runs_and_labeler(completed):
     wd, cfg = completed
     jobs = _with_change(wd, cfg, {"generator.sampling.steps": 21})
     assert {"sample_domain", "pseudo_label", "train_gda", "semkitti_result"} <= set(jobs)
-    assert "train_supervised" not in jobs and "train_labeler" not in jobs
+    assert "train_supervised" not in jobs and "train_labeler" not in jobs and "evaluate_labeler" not in jobs
     assert jobs["evaluate_segmentor"] == 2  # the GDA runs' evaluations only

@@ -14,6 +14,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--kind", required=True, choices=["semkitti", "semkittic", "nusc_beam32", "semanticstf"])
     parser.add_argument("--evaluations", nargs="+", required=True, help="evaluate-segmentor outputs")
     parser.add_argument("--pseudo-labels", nargs="*", default=[], help="pseudo-label shards used (for timings)")
+    parser.add_argument("--labeler-evaluation", help="evaluate-segmentor output of the labeler (its own val scores)")
     data_source_arg(parser)
     parser.add_argument("--standin", action="store_true", help="the evaluation sets are a synthetic stand-in")
     parser.add_argument("--out", required=True, help="result JSON")
@@ -51,6 +52,8 @@ def run(args) -> int:
         "miou_convention": "miou: semantic-kitti-api (absent classes count as 0); miou_nanmean: mmdet3d",
         "evaluation_sets": sorted(evals[0]["sets"]),
     })
+    if args.labeler_evaluation:
+        numbers["labeler"] = ex.labeler_quality(ex.read_evaluation(args.labeler_evaluation))
     if args.kind == "semanticstf":
         numbers["synthetic_weather_standin"] = bool(args.standin)
         if args.standin:
@@ -66,5 +69,7 @@ def run(args) -> int:
         if "miou_gain" in run and isinstance(run["miou_gain"], float):
             print(f"{backbone}: supervised-only {100 * run['supervised_only']['scores']['val']['miou']:.2f} "
                   f"-> GDA {100 * run['gda']['scores']['val']['miou']:.2f} mIoU")
+    if "labeler" in numbers:
+        print(f"labeler (writes every pseudo-label): val mIoU {100 * numbers['labeler']['val_miou']:.2f}")
     print(f"result: {args.out}  figure: {args.figure}")
     return 0

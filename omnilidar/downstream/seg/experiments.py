@@ -43,6 +43,18 @@ def _summary(scores: dict) -> dict:
     return {k: scores[k] for k in ("miou", "miou_nanmean", "accuracy", "iou", "num_scans")}
 
 
+def labeler_quality(evaluation: dict) -> dict:
+    """The labeler's own val scores (mIoU both ways, per-class IoU by name), as a GDA result records them."""
+    val = evaluation["sets"].get("val")
+    if val is None:
+        raise InputError(evaluation["_path"], "the labeler's evaluation has no 'val' set")
+    return {
+        "val_miou": val["miou"], "val_miou_nanmean": val["miou_nanmean"], "val_accuracy": val["accuracy"],
+        "val_iou": val["iou"], "val_scans": val["num_scans"],
+        "label_space": evaluation["label_space"], "evaluation": evaluation["_path"],
+    }
+
+
 def group_runs(evals: list[dict]) -> dict:
     """backbone -> role -> evaluation document (one each)."""
     runs: dict[str, dict[str, dict]] = {}
