@@ -393,6 +393,7 @@ rule gda_curve:
         evaluations=curve_evaluations(),
         samples=curve_shards(GDA_CURVE["domain"], max(curve_counts())),
         pseudo=curve_pseudo_labels(GDA_CURVE["domain"], max(curve_counts())),
+        labeler=LABELER_VAL,
     output:
         json="results/gda_curve.json",
         table="results/tables/gda_curve.html",
@@ -413,7 +414,7 @@ rule gda_curve:
     shell:
         with_table(
             "omnilidar gda-curve --evaluations {input.evaluations} --samples {input.samples} "
-            "--pseudo-labels {input.pseudo} "
+            "--pseudo-labels {input.pseudo} --labeler-evaluation {input.labeler} "
             "--settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
             "--out {output.json} --figure {output.figure} > {log} 2>&1"
         )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import report_outputs_arg, data_source_arg, seed_arg, settings_arg
+from omnilidar.commands._common import data_source_arg, labeler_evaluation_arg, report_outputs_arg, seed_arg, settings_arg
 
 HELP = "assemble mIoU against the number of generated scans and the seconds each point cost (results/gda_curve.json)"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -15,6 +15,7 @@ def add_arguments(parser) -> None:
                         help="evaluate-segmentor outputs: the supervised-only run and --max-generated runs")
     parser.add_argument("--samples", nargs="*", default=[], help="sample shards the runs drew from, in order")
     parser.add_argument("--pseudo-labels", nargs="*", default=[], help="their pseudo-label shards, same order")
+    labeler_evaluation_arg(parser)
     data_source_arg(parser)
     report_outputs_arg(parser, markdown=False)
 
@@ -23,7 +24,7 @@ def run(args) -> int:
     import json
 
     from omnilidar.config import validate
-    from omnilidar.downstream.seg.experiments import read_evaluation
+    from omnilidar.downstream.seg.experiments import labeler_quality, read_evaluation
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
     from omnilidar.provenance import envelope
@@ -61,6 +62,7 @@ def run(args) -> int:
             "sampling-loop seconds / generated scans, from each sample shard's timing.json"),
         total_note=gc.TOTAL_NOTE, miou_convention="miou: semantic-kitti-api (absent classes count as 0)",
         rows=rows,
+        **({"labeler": labeler_quality(read_evaluation(args.labeler_evaluation))} if args.labeler_evaluation else {}),
     )
     write_text_atomic(args.out, json.dumps(doc, indent=1))
     gc.curve_figure(args.figure, doc)
