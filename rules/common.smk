@@ -349,10 +349,16 @@ def run_evaluation(dataset, backbone, pct, augmentation, evalset):
     return f"{SEG}/{dataset}/{backbone}_{pct}pct_{augmentation}.{evalset}.json"
 
 
-def comparison(dataset, backbones, pct, domains, evalset):
-    """Evaluations of the supervised-only and GDA runs of each backbone."""
+def seed_suffix(k):
+    """File-name suffix of a run's k-th seed (k = 0: the configured seed, no suffix)."""
+    return "" if k == 0 else f"_seed{config['seed'] + k}"
+
+
+def comparison(dataset, backbones, pct, domains, evalset, seeds=1):
+    """Evaluations of the supervised-only and GDA runs of each backbone, for each of ``seeds`` seeds."""
     gda = "gda-" + "+".join(domains)
-    return [run_evaluation(dataset, b, pct, a, evalset) for b in backbones for a in ("real", gda)]
+    return [run_evaluation(dataset, b, pct, a + seed_suffix(k), evalset)
+            for b in backbones for a in ("real", gda) for k in range(seeds)]
 
 
 def generated_pseudo_labels(domains):

@@ -191,6 +191,51 @@ rule train_gda:
         "--domains {params.domains} > {log} 2>&1"
 
 
+# Extra seeds of a run (downstream.experiments.<name>.seeds): the same job with seed
+# seed + k, its files ending in _seed<seed + k>.
+use rule train_supervised as train_supervised_seed with:
+    output:
+        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_real_seed{{seed}}.pt",
+    wildcard_constraints:
+        dataset=r"semantickitti|nuscenes",
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+        seed=r"\d+",
+    params:
+        settings=downstream_settings(*TRAINING_KEYS),
+        seed=lambda w: int(w.seed),
+        work_dir=lambda w, output: job_work_dir(output[0]),
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real_seed{{seed}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real_seed{{seed}}.tsv"
+
+
+use rule train_gda as train_gda_seed with:
+    output:
+        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda-{{domains}}_seed{{seed}}.pt",
+    wildcard_constraints:
+        dataset=r"semantickitti|nuscenes",
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+        domains=r"[a-z0-9_]+(\+[a-z0-9_]+)*",
+        seed=r"\d+",
+    params:
+        settings=downstream_settings(*TRAINING_KEYS, "mixing"),
+        seed=lambda w: int(w.seed),
+        work_dir=lambda w, output: job_work_dir(output[0]),
+        domains=lambda w: " ".join(gda_domains(w)),
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}_seed{{seed}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}_seed{{seed}}.tsv"
+
+
+ruleorder: train_gda_seed > train_gda
+
+
 rule train_gda_curve:
     """One point of the GDA curve: the real label subset plus the first N generated scans
     (wildcard scans) of one domain (sample shards in order, scans in name order), from
@@ -263,7 +308,7 @@ rule semkitti_result:
     """MinkUNet and SPVCNN on a SemanticKITTI label subset: supervised-only vs GDA."""
     input:
         evaluations=lambda w: comparison("semantickitti", EXPERIMENTS["semkitti"]["backbones"], w.pct,
-                                         [EXPERIMENTS["semkitti"]["domain"]], "val"),
+                                         [EXPERIMENTS["semkitti"]["domain"]], "val", EXPERIMENTS["semkitti"]["seeds"]),
         pseudo=generated_pseudo_labels([EXPERIMENTS["semkitti"]["domain"]]),
         labeler=LABELER_VAL,
     output:
@@ -325,7 +370,7 @@ rule nusc_beam32_result:
     """Beam-32 samples augmenting a nuScenes label subset (16 lidarseg classes)."""
     input:
         evaluations=lambda w: comparison("nuscenes", EXPERIMENTS["nusc_beam32"]["backbones"], w.pct,
-                                         [EXPERIMENTS["nusc_beam32"]["domain"]], "val"),
+                                         [EXPERIMENTS["nusc_beam32"]["domain"]], "val", EXPERIMENTS["nusc_beam32"]["seeds"]),
         pseudo=generated_pseudo_labels([EXPERIMENTS["nusc_beam32"]["domain"]]),
         labeler=LABELER_VAL,
     output:

@@ -243,3 +243,28 @@ def test_gda_result_records_the_labelers_own_quality(tmp_path, capsys):
     args.labeler_evaluation = str(tmp_path / "bad.json")
     with pytest.raises(InputError, match="no 'val' set"):
         gda_result.run(args)
+
+
+def test_comparison_over_several_seeds_gives_mean_and_spread():
+    def seeded(backbone, role, miou, seed):
+        return {**_eval(backbone, role, miou), "seed": seed, "_path": f"{backbone}_{role}_{seed}.json"}
+
+    evals = [seeded("minkunet", "supervised_only", m, s) for s, m in ((2, 0.24), (0, 0.20), (1, 0.22))]
+    evals += [seeded("minkunet", "gda", m, s) for s, m in ((0, 0.25), (1, 0.21), (2, 0.29))]
+    run = compare("semkitti", evals)["minkunet"]
+    sup, gda = run["supervised_only"]["across_seeds"], run["gda"]["across_seeds"]
+    assert sup["seeds"] == [0, 1, 2] and sup["miou"] == [0.20, 0.22, 0.24]
+    assert sup["miou_mean"] == pytest.approx(0.22) and sup["miou_std"] == pytest.approx(0.02)
+    assert gda["miou_mean"] == pytest.approx(0.25) and gda["miou_std"] == pytest.approx(0.04)
+    assert run["miou_gain_per_seed"] == pytest.approx([0.05, -0.01, 0.05]) and run["seeds"] == 3
+    assert run["miou_gain"] == pytest.approx(0.03) and run["gda_helped"]
+    # The record's own scores are the configured (lowest) seed's run.
+    assert run["supervised_only"]["scores"]["val"]["miou"] == pytest.approx(0.20)
+    assert sup["iou_mean"]["car"] == pytest.approx(0.22)
+    # One seed: no spread; unequal seed sets and a repeated seed are errors.
+    single = compare("semkitti", [seeded("minkunet", "supervised_only", 0.2, 0), seeded("minkunet", "gda", 0.3, 0)])
+    assert single["minkunet"]["gda"]["across_seeds"]["miou_std"] is None
+    with pytest.raises(InputError, match="differ from GDA seeds"):
+        compare("semkitti", evals[:3] + evals[3:5])
+    with pytest.raises(InputError, match="with seed 0"):
+        compare("semkitti", evals + [seeded("minkunet", "gda", 0.3, 0)])

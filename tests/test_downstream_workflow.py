@@ -80,6 +80,26 @@ def test_headline_dag(workdir):
     assert "nuscenes" not in synthesized_shards(workdir, "results/semkitti_1pct.json")
 
 
+def test_extra_seeds_are_their_own_runs(workdir):
+    """experiments.semkitti.seeds: 3 trains every run with seeds 0, 1, 2 (files _seed1, _seed2) and
+    scores them all in one result."""
+    from workflow_helpers import snakemake
+
+    (workdir / "seeds.yaml").write_text("downstream: {experiments: {semkitti: {seeds: 3}}}\n")
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/semkitti_1pct.json",
+                    "--configfile", "config/config.yaml", "seeds.yaml").stdout
+    jobs = _jobs(workdir, "results/semkitti_1pct.json", "--configfile", "config/config.yaml", "seeds.yaml")
+    assert jobs["train_supervised"] == jobs["train_gda"] == 2
+    assert jobs["train_supervised_seed"] == jobs["train_gda_seed"] == 4 and jobs["evaluate_segmentor"] == 12
+    runs = {line.split("--seed ")[1].split()[0] + " " + line.split("--out ")[1].split()[0]
+            for line in out.splitlines() if "omnilidar train-segmentor" in line}
+    assert "1 data/segmentation/semantickitti/minkunet_1pct_real_seed1.pt" in runs
+    assert "2 data/segmentation/semantickitti/spvcnn_1pct_gda-vehicle_seed2.pt" in runs
+    assert "0 data/segmentation/semantickitti/minkunet_1pct_real.pt" in runs and len(runs) == 12
+    result = next(line for line in out.splitlines() if "omnilidar gda-result" in line)
+    assert "minkunet_1pct_gda-vehicle_seed2.val.json" in result and "labeler/semantickitti.val.json" in result
+
+
 def test_every_target_plans(workdir):
     jobs = _jobs(workdir, "segmentation")
     # semkitti 1/10/20: 2 backbones x 2 runs each; semkittic and semanticstf share the

@@ -67,8 +67,10 @@ def run(args) -> int:
     iou_bars(ex.figure_panels(args.kind, evals), args.figure, title)
     for backbone, run in numbers["runs"].items():
         if "miou_gain" in run and isinstance(run["miou_gain"], float):
-            print(f"{backbone}: supervised-only {100 * run['supervised_only']['scores']['val']['miou']:.2f} "
-                  f"-> GDA {100 * run['gda']['scores']['val']['miou']:.2f} mIoU")
+            sup, gda = run["supervised_only"]["across_seeds"], run["gda"]["across_seeds"]
+            spread = lambda a: "" if a["miou_std"] is None else f" +- {100 * a['miou_std']:.2f}"  # noqa: E731
+            print(f"{backbone}: supervised-only {100 * sup['miou_mean']:.2f}{spread(sup)} "
+                  f"-> GDA {100 * gda['miou_mean']:.2f}{spread(gda)} mIoU ({run['seeds']} seed(s))")
     if "labeler" in numbers:
         print(f"labeler (writes every pseudo-label): val mIoU {100 * numbers['labeler']['val_miou']:.2f}")
     print(f"result: {args.out}  figure: {args.figure}")

@@ -11,6 +11,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from omnilidar.downstream.seg.robustness import ROBO3D_MINKUNET18, robustness
 from omnilidar.errors import InputError
 from omnilidar.io.json_file import read_json
@@ -55,15 +57,41 @@ def labeler_quality(evaluation: dict) -> dict:
     }
 
 
-def group_runs(evals: list[dict]) -> dict:
-    """backbone -> role -> evaluation document (one each)."""
-    runs: dict[str, dict[str, dict]] = {}
+def runs_by_seed(evals: list[dict]) -> dict:
+    """backbone -> role -> evaluation documents, one per seed, lowest seed (the configured one) first."""
+    runs: dict[str, dict[str, list[dict]]] = {}
     for ev in evals:
         backbone, role = ev["model"]["backbone"], ev["train"]["info"]["role"]
-        if role in runs.setdefault(backbone, {}):
-            raise InputError(ev["_path"], f"a second {role} run of {backbone}")
-        runs[backbone][role] = ev
+        docs = runs.setdefault(backbone, {}).setdefault(role, [])
+        if any(d["seed"] == ev["seed"] for d in docs):
+            raise InputError(ev["_path"], f"a second {role} run of {backbone} with seed {ev['seed']}")
+        docs.append(ev)
+    for roles in runs.values():
+        for docs in roles.values():
+            docs.sort(key=lambda d: d["seed"])
     return runs
+
+
+def group_runs(evals: list[dict]) -> dict:
+    """backbone -> role -> evaluation document (one each: experiments that run one seed)."""
+    runs = runs_by_seed(evals)
+    for backbone, roles in runs.items():
+        for role, docs in roles.items():
+            if len(docs) > 1:
+                raise InputError(docs[1]["_path"], f"a second {role} run of {backbone}")
+    return {b: {r: docs[0] for r, docs in roles.items()} for b, roles in runs.items()}
+
+
+def seed_statistics(docs: list[dict], evalset: str = "val") -> dict:
+    """Every seed's mIoU on one set, their mean and sample standard deviation (None for one seed),
+    and the mean IoU per class."""
+    mious = [d["sets"][evalset]["miou"] for d in docs]
+    classes = docs[0]["sets"][evalset]["iou"]
+    return {
+        "seeds": [d["seed"] for d in docs], "miou": mious, "miou_mean": float(np.mean(mious)),
+        "miou_std": float(np.std(mious, ddof=1)) if len(docs) > 1 else None,
+        "iou_mean": {c: float(np.mean([d["sets"][evalset]["iou"][c] for d in docs])) for c in classes},
+    }
 
 
 def _paper_pair(kind: str, backbone: str, percent: float):
@@ -83,18 +111,27 @@ def _run_record(ev: dict, sets: list[str]) -> dict:
 
 
 def compare(kind: str, evals: list[dict]) -> dict:
-    """Supervised-only vs GDA per backbone on the 'val' set (semkitti, nusc_beam32)."""
+    """Supervised-only vs GDA per backbone on the 'val' set (semkitti, nusc_beam32), over every seed
+    given (the records' scores are the configured seed's; across_seeds holds all of them)."""
     out = {}
-    for backbone, roles in group_runs(evals).items():
+    for backbone, roles in runs_by_seed(evals).items():
         missing = {"supervised_only", "gda"} - set(roles)
         if missing:
             raise InputError(None, f"{backbone}: no {', '.join(sorted(missing))} evaluation given")
-        sup, gda = _run_record(roles["supervised_only"], ["val"]), _run_record(roles["gda"], ["val"])
-        pct = roles["gda"]["train"]["info"]["percent"]
+        seeds = {role: [d["seed"] for d in docs] for role, docs in roles.items()}
+        if seeds["supervised_only"] != seeds["gda"]:
+            raise InputError(None, f"{backbone}: supervised-only seeds {seeds['supervised_only']} differ from "
+                                   f"GDA seeds {seeds['gda']}")
+        sup, gda = _run_record(roles["supervised_only"][0], ["val"]), _run_record(roles["gda"][0], ["val"])
+        sup["across_seeds"] = seed_statistics(roles["supervised_only"])
+        gda["across_seeds"] = seed_statistics(roles["gda"])
+        gains = [g - s for g, s in zip(gda["across_seeds"]["miou"], sup["across_seeds"]["miou"])]
+        pct = roles["gda"][0]["train"]["info"]["percent"]
         out[backbone] = {
-            "supervised_only": sup, "gda": gda,
-            "miou_gain": gda["scores"]["val"]["miou"] - sup["scores"]["val"]["miou"],
-            "gda_helped": gda["scores"]["val"]["miou"] > sup["scores"]["val"]["miou"],
+            "supervised_only": sup, "gda": gda, "seeds": len(gains),
+            "miou_gain": float(np.mean(gains)),
+            "miou_gain_per_seed": gains,
+            "gda_helped": bool(np.mean(gains) > 0),
             "paper_miou": _paper_pair(kind, backbone, pct),
         }
     return out
@@ -157,7 +194,8 @@ def weather_result(evals: list[dict]) -> dict:
 def figure_panels(kind: str, evals: list[dict]) -> list[dict]:
     """Per-class IoU panels (supervised-only vs GDA) for the figure of an experiment."""
     panels = []
-    for backbone, roles in sorted(group_runs(evals).items()):
+    for backbone, by_seed in sorted(runs_by_seed(evals).items()):
+        roles = {role: docs[0] for role, docs in by_seed.items()}  # the configured seed's run
         sets = ["val"] if kind in ("semkitti", "nusc_beam32") else list(roles["supervised_only"]["sets"])
         for s in sets:
             classes = roles["supervised_only"]["class_names"]
@@ -178,6 +216,8 @@ def timings(evals: list[dict], pseudo_sidecars: list[dict]) -> dict:
             raise InputError(None, "pseudo-label shards were made by different labelers")
     for ev in evals:
         name = f"{ev['model']['backbone']}_{ev['train']['info']['role']}"
+        if f"train_{name}" in t:  # an extra seed of the same run
+            name += f"_seed{ev['seed']}"
         t[f"train_{name}"] = ev["train"]["seconds"]
         t[f"evaluate_{name}"] = ev["seconds"]
     return t
