@@ -416,7 +416,8 @@ def curve_evaluations():
     results/semkitti_{pct}pct.json compares (reused), N the run on the first N scans."""
     curve = EXPERIMENTS["gda_curve"]
     runs = ["real" if n == 0 else f"gda{n}-{curve['domain']}" for n in curve_counts()]
-    return [run_evaluation("semantickitti", curve["backbone"], curve["percent"], r, "val") for r in runs]
+    return [run_evaluation("semantickitti", curve["backbone"], curve["percent"], r + seed_suffix(k), "val")
+            for r in runs for k in range(curve["seeds"])]
 
 
 # Detection helpers (rules/detection.smk), after what they read.

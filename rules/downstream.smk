@@ -273,6 +273,27 @@ rule train_gda_curve:
         "--domains {wildcards.domain} --max-generated {wildcards.scans} > {log} 2>&1"
 
 
+use rule train_gda_curve as train_gda_curve_seed with:
+    output:
+        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.pt",
+    wildcard_constraints:
+        dataset=r"semantickitti|nuscenes",
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+        scans=r"[1-9]\d*",
+        domain="|".join(DOMAIN_NAMES),
+        seed=r"\d+",
+    params:
+        settings=downstream_settings(*TRAINING_KEYS, "mixing"),
+        seed=lambda w: int(w.seed),
+        work_dir=lambda w, output: job_work_dir(output[0]),
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.tsv"
+
+
 rule evaluate_segmentor:
     """Per-class IoU, mIoU (semantic-kitti-api and nanmean) and accuracy of one run on the
     official val split (val), plus the corrupted sets (corrupted) or weather subsets (weather)."""

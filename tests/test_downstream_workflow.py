@@ -98,6 +98,11 @@ def test_extra_seeds_are_their_own_runs(workdir):
     assert "0 data/segmentation/semantickitti/minkunet_1pct_real.pt" in runs and len(runs) == 12
     result = next(line for line in out.splitlines() if "omnilidar gda-result" in line)
     assert "minkunet_1pct_gda-vehicle_seed2.val.json" in result and "labeler/semantickitti.val.json" in result
+    # The GDA curve: every count (and its 0 point, the supervised-only run) for each seed.
+    (workdir / "curve_seeds.yaml").write_text("downstream: {experiments: {gda_curve: {seeds: 2}}}\n")
+    jobs = _jobs(workdir, "results/gda_curve.json", "--configfile", "config/config.yaml", "curve_seeds.yaml")
+    assert jobs["train_gda_curve"] == jobs["train_gda_curve_seed"] == 3  # 4, 8, 16 generated scans
+    assert jobs["train_supervised"] == jobs["train_supervised_seed"] == 1 and jobs["evaluate_segmentor"] == 8
 
 
 def test_every_target_plans(workdir):

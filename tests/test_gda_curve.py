@@ -114,11 +114,12 @@ def test_train_segmentor_max_generated_uses_exactly_n_and_records_it(tmp_path, c
     assert not (tmp_path / "gda7.pt").exists()
 
 
-def _evaluation(path, role: str, max_generated, miou: float, train_seconds: float, num_generated: int = 0) -> str:
+def _evaluation(path, role: str, max_generated, miou: float, train_seconds: float, num_generated: int = 0,
+                seed: int = 0) -> str:
     """A hand-made evaluate-segmentor output (only the fields the curve reads)."""
     doc = {
         "checkpoint": str(path).replace(".val.json", ".pt"), "model": {"backbone": "minkunet"},
-        "label_space": "semantickitti", "class_names": ["car"], "voxel_size": 0.3, "seed": 0, "seconds": 1.5,
+        "label_space": "semantickitti", "class_names": ["car"], "voxel_size": 0.3, "seed": seed, "seconds": 1.5,
         "train": {"seconds": train_seconds, "iterations": 40, "num_real": 2, "num_generated": num_generated,
                   "info": {"role": role, "dataset": "semantickitti", "percent": 1.0, "max_generated": max_generated,
                            "domains": ["vehicle"] if role == "gda" else []}},
@@ -170,6 +171,24 @@ def test_gda_curve_rows_and_compute(curve_inputs):
     assert doc["timings"]["sampling_per_scan"] == 3.0 and doc["timings"]["labeler"] == 30.0
     assert doc["setup"]["backbone"] == "minkunet" and doc["setup"]["domain"] == "vehicle"
     assert (root / "curve.png").stat().st_size > 1000
+
+
+def test_gda_curve_over_seeds_gives_mean_and_error_bars(curve_inputs, capsys):
+    root, evals, samples, benches, pseudo = curve_inputs
+    extra = [_evaluation(root / "real_s1.val.json", "supervised_only", None, 0.24, 12.0, seed=1),
+             _evaluation(root / "gda2_s1.val.json", "gda", 2, 0.21, 10.5, 1, seed=1),
+             _evaluation(root / "gda4_s1.val.json", "gda", 4, 0.34, 13.0, 3, seed=1)]
+    assert main(_curve_args(root, evals + extra, samples, benches, pseudo)) == 0
+    rows = read_curve(root / "curve.json")["rows"]
+    assert [r["seeds"] for r in rows] == [[0, 1]] * 3
+    assert [r["miou_per_seed"] for r in rows] == [[0.20, 0.24], [0.25, 0.21], [0.30, 0.34]]
+    assert [r["miou"] for r in rows] == pytest.approx([0.22, 0.23, 0.32])
+    assert [r["miou_std"] for r in rows] == pytest.approx([0.02 * 2 ** 0.5] * 3)
+    assert rows[0]["train_seconds"] == 11.0  # mean of the seeds' training seconds
+    # A count that ran other seeds than the rest: one clear error.
+    capsys.readouterr()
+    assert main(_curve_args(root, evals + extra[:2], samples, benches, pseudo)) == 2
+    assert "the counts ran different seeds" in capsys.readouterr().err
 
 
 def test_gda_curve_bad_runs_are_input_errors(curve_inputs, capsys):

@@ -101,45 +101,58 @@ def generated_count(ev: dict) -> int:
 
 
 def curve_rows(evaluations: list[dict], sampling_per_scan: float, pseudo_per_scan: float = 0.0) -> list[dict]:
-    """One row per run (``evaluate-segmentor`` documents), sorted by generated scans.
+    """One row per number of generated scans (``evaluate-segmentor`` documents), sorted by it.
 
-    Every run must share backbone, dataset, label percent and seed, and the GDA
-    runs one domain; two runs of the same count are an error.
+    Every run must share backbone, dataset and label percent, and the GDA runs one
+    domain. Several seeds per count give the row their mean mIoU (and training seconds),
+    the sample standard deviation and every seed's value; every count must have run the
+    same seeds, and two runs of one count and seed are an error.
     """
     if not evaluations:
         raise InputError(None, "no evaluations given")
-    rows, setup = {}, None
+    by_count: dict[int, dict[int, dict]] = {}
+    setup = None
     for ev in evaluations:
         path = ev.get("_path")
         info = ev["train"].get("info", {})
-        key = {"backbone": ev["model"]["backbone"], "dataset": info.get("dataset"),
-               "percent": info.get("percent"), "seed": ev.get("seed")}
+        key = {"backbone": ev["model"]["backbone"], "dataset": info.get("dataset"), "percent": info.get("percent")}
         if setup is None:
             setup = key
         elif key != setup:
             raise InputError(path, f"run differs from the first one ({key} vs {setup}); a curve varies only "
-                                   "the number of generated scans")
+                                   "the number of generated scans (and the seed)")
         if "val" not in ev["sets"]:
             raise InputError(path, "has no 'val' set")
         count = generated_count(ev)
-        if count in rows:
-            raise InputError(path, f"a second run with {count} generated scans")
-        train_s = float(ev["train"]["seconds"])
+        seeds = by_count.setdefault(count, {})
+        if ev.get("seed") in seeds:
+            raise InputError(path, f"a second run with {count} generated scans and seed {ev.get('seed')}")
+        seeds[ev.get("seed")] = ev
+    seed_sets = {count: sorted(runs) for count, runs in by_count.items()}
+    if len({tuple(v) for v in seed_sets.values()}) > 1:
+        raise InputError(None, f"the counts ran different seeds ({seed_sets}); a row's mean needs the same seeds")
+    rows = {}
+    for count, runs in by_count.items():
+        docs = [runs[k] for k in sorted(runs)]
+        first, mious = docs[0], [float(d["sets"]["val"]["miou"]) for d in docs]
+        train_s = float(np.mean([float(d["train"]["seconds"]) for d in docs]))
         sampling = count * sampling_per_scan
         pseudo = count * pseudo_per_scan
-        val = ev["sets"]["val"]
         rows[count] = {
             "generated_scans": count,
-            "trained_generated_scans": int(ev["train"]["num_generated"]),
-            "domains": list(info.get("domains", [])),
-            "miou": float(val["miou"]),
-            "miou_nanmean": float(val["miou_nanmean"]),
+            "trained_generated_scans": int(first["train"]["num_generated"]),
+            "domains": list(first["train"].get("info", {}).get("domains", [])),
+            "miou": float(np.mean(mious)),
+            "miou_std": float(np.std(mious, ddof=1)) if len(docs) > 1 else None,
+            "miou_per_seed": mious,
+            "seeds": sorted(runs),
+            "miou_nanmean": float(np.mean([float(d["sets"]["val"]["miou_nanmean"]) for d in docs])),
             "train_seconds": round(train_s, 2),
             "sampling_seconds": round(sampling, 2),
             "pseudo_label_seconds": round(pseudo, 2),
             "total_seconds": round(train_s + sampling + pseudo, 2),
-            "iterations": ev["train"]["iterations"],
-            "checkpoint": ev["checkpoint"],
+            "iterations": first["train"]["iterations"],
+            "checkpoint": first["checkpoint"],
         }
     domains = {d for r in rows.values() for d in r["domains"]}
     if len(domains) > 1:
@@ -217,12 +230,16 @@ def curve_figure(path: str | Path, doc: dict) -> None:
     counts = [int(r["generated_scans"]) for r in rows]
     fig, axes = plt.subplots(1, 3, figsize=(13.5, 3.8))
     ax = axes[0]
-    ax.plot(counts, [100.0 * r["miou"] for r in rows], "o-", color="#1f77b4")
+    spread = [100.0 * r["miou_std"] if r.get("miou_std") is not None else 0.0 for r in rows]
+    ax.errorbar(counts, [100.0 * r["miou"] for r in rows], yerr=spread if any(spread) else None, fmt="o-",
+                color="#1f77b4", capsize=3)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("generated scans added")
     ax.set_ylabel("val mIoU (%)")
     ax.grid(alpha=0.3)
-    ax.set_title("mIoU vs generated scans", fontsize=9)
+    seeds = len(rows[0].get("seeds") or [None])
+    ax.set_title("mIoU vs generated scans" + (f" (mean +- std over {seeds} seeds)" if seeds > 1 else " (one seed)"),
+                 fontsize=9)
     draw_miou_vs_compute(axes[1], rows, "mIoU vs compute (training + sampling + pseudo-labels)")
     ax = axes[2]
     x = np.arange(len(rows))
