@@ -34,8 +34,3 @@ def data_source_arg(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--data-source", type=parse, required=True,
                         help='{dataset: {"root": path, "kind": "real" | "synthetic"}} (Snakemake passes it)')
-
-
-def labeler_evaluation_arg(parser: argparse.ArgumentParser) -> None:
-    """``--labeler-evaluation``: the labeler's own val scores, recorded in a GDA result."""
-    parser.add_argument("--labeler-evaluation", help="evaluate-segmentor output of the labeler (its own val scores)")

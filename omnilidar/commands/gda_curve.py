@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import data_source_arg, labeler_evaluation_arg, report_outputs_arg, seed_arg, settings_arg
+from omnilidar.commands._common import data_source_arg, report_outputs_arg, seed_arg, settings_arg
 
 HELP = "assemble mIoU against the number of generated scans and the seconds each point cost (results/gda_curve.json)"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -15,7 +15,7 @@ def add_arguments(parser) -> None:
                         help="evaluate-segmentor outputs: the supervised-only run and --max-generated runs")
     parser.add_argument("--samples", nargs="*", default=[], help="sample shards the runs drew from, in order")
     parser.add_argument("--pseudo-labels", nargs="*", default=[], help="their pseudo-label shards, same order")
-    labeler_evaluation_arg(parser)
+    parser.add_argument("--labeler-evaluation", help="evaluate-segmentor output of the labeler (its own val scores)")
     data_source_arg(parser)
     report_outputs_arg(parser, markdown=False)
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import data_source_arg, labeler_evaluation_arg, seed_arg, settings_arg
+from omnilidar.commands._common import data_source_arg, seed_arg, settings_arg
 
 HELP = "assemble a segmentation GDA experiment (supervised-only vs GDA, mCE/mRR, weather subsets) with its figure"
 
@@ -14,7 +14,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--kind", required=True, choices=["semkitti", "semkittic", "nusc_beam32", "semanticstf"])
     parser.add_argument("--evaluations", nargs="+", required=True, help="evaluate-segmentor outputs")
     parser.add_argument("--pseudo-labels", nargs="*", default=[], help="pseudo-label shards used (for timings)")
-    labeler_evaluation_arg(parser)
+    parser.add_argument("--labeler-evaluation", help="evaluate-segmentor output of the labeler (its own val scores)")
     data_source_arg(parser)
     parser.add_argument("--standin", action="store_true", help="the evaluation sets are a synthetic stand-in")
     parser.add_argument("--out", required=True, help="result JSON")
