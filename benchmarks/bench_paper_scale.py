@@ -30,7 +30,14 @@ scale show up here before a cluster allocation is spent:
   extraction from the protocol views of the scan at 64x1024; training step = the
   self-training pretext loss, backward, AdamW (FPD with 2 scans: PointNet's
   BatchNorm needs two).
-* detectors: not in the package yet; add them to ``MODELS`` when they land.
+* voxel_rcnn, pv_rcnn: the detectors of ``downstream.det`` (OpenPCDet's published
+  MODEL sections in ``config/paper.yaml``) for the Quadruped platform (Car and
+  Pedestrian anchors) over Pi3DET's range [0, -75.2, -2, 75.2, 75.2, 4] at its
+  voxel size; the scan's points in that range with three hand-placed boxes (two
+  cars, a pedestrian: speed does not depend on where); training step = the
+  detector's loss (RPN, point head, R-CNN), backward, gradient clipping, Adam
+  one-cycle with the schedule's settings, voxels capped at ``max_voxels_train``;
+  inference = one forward with post-processing (``max_voxels_test``).
 
 Peak memory is the process's maximum resident set (``ru_maxrss``) after the
 sampling step and after the training step; "above base" subtracts the maximum
@@ -61,7 +68,7 @@ CLIP_TEXT_DIMS = {
     "openai/clip-vit-base-patch16": 512,
 }
 MINILM_DIM = 384
-MODELS = ("generator", "minkunet", "spvcnn", "labeler", "frd", "frid", "fsvd", "fpvd", "fpd")
+MODELS = ("generator", "minkunet", "spvcnn", "labeler", "frd", "frid", "fsvd", "fpvd", "fpd", "voxel_rcnn", "pv_rcnn")
 
 
 # --------------------------------------------------------------------------- child side
@@ -287,6 +294,62 @@ def bench_extractor(kind: str, cfg: dict, scan, repeats: int) -> dict:
             "note": f"{arch}, {dims[0]}-d features"}
 
 
+def bench_detector(name: str, cfg: dict, scan, repeats: int) -> dict:
+    import numpy as np
+    import torch
+
+    from omnilidar.downstream.det.data_config import platform_config
+    from omnilidar.downstream.det.dataset import DetCollate
+    from omnilidar.downstream.det.model_config import build, model_config
+    from omnilidar.downstream.det.optim import adam_onecycle
+    from omnilidar.downstream.det.voxelize import points_to_voxels
+
+    det = cfg["downstream"]["det"]
+    platform = platform_config(det, "quadruped")
+    pcr = np.asarray(platform.point_cloud_range, np.float32)
+    points = scan[np.all((scan[:, :3] >= pcr[:3]) & (scan[:, :3] <= pcr[3:]), axis=1)]
+    # [x, y, z, dx, dy, dz, heading, class id]: two cars and a pedestrian in front of the sensor.
+    boxes = np.array([[12.0, 3.0, -0.95, 3.9, 1.6, 1.56, 0.1, 1], [25.0, -6.0, -0.95, 4.2, 1.7, 1.5, 1.6, 1],
+                      [9.0, -3.0, -0.85, 0.8, 0.6, 1.73, 0.0, 2]], np.float32)
+
+    def batch(cap: int) -> dict:
+        voxels, coords, num = points_to_voxels(points, platform.voxel_size, platform.point_cloud_range,
+                                               det["voxels"]["max_points_per_voxel"], cap)
+        return DetCollate()([{"points": points, "voxels": voxels, "voxel_coords": coords, "voxel_num_points": num,
+                              "gt_boxes": boxes, "frame_id": "bench", "index": 0}])
+
+    train_batch, test_batch = batch(det["voxels"]["max_voxels_train"]), batch(det["voxels"]["max_voxels_test"])
+    base = _max_rss_mib()
+    t0 = time.perf_counter()
+    torch.manual_seed(0)
+    model = model_config(det, name, platform, ROOT / det["detectors"][name]["config"])
+    net = build(model, platform, seed=0)
+    build_s = time.perf_counter() - t0
+    net.eval()
+    with torch.no_grad():
+        sample_s = _timed(lambda: net(dict(test_batch)), repeats)
+    rss_sample = _max_rss_mib()
+
+    net.train()
+    sched = det["schedule"]
+    optimizer, schedule = adam_onecycle(net, sched, 100)
+
+    def train_step():
+        loss = net(dict(train_batch))[0]["loss"]
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), float(sched["grad_norm_clip"]))
+        optimizer.step()
+
+    train_s = _timed(train_step, repeats)
+    return {"parameters": sum(p.numel() for p in net.parameters()), "build_s": build_s, "train_s": train_s,
+            "sample_s": sample_s, "rss_base": base, "rss_sample": rss_sample, "rss_train": _max_rss_mib(),
+            "input": f"{len(points)} points in range, {len(test_batch['voxel_coords'])} voxels at "
+                     f"{platform.voxel_size} m (training cap {det['voxels']['max_voxels_train']}: "
+                     f"{len(train_batch['voxel_coords'])})",
+            "note": f"{name}, Quadruped classes {'/'.join(platform.class_names)}"}
+
+
 def child(args) -> dict:
     import torch
 
@@ -300,6 +363,8 @@ def child(args) -> dict:
         out = bench_generator(cfg, scan, args.repeats, args.text_dim)
     elif args.child in ("minkunet", "spvcnn", "labeler"):
         out = bench_segmentor(args.child, cfg, scan, args.repeats)
+    elif args.child in ("voxel_rcnn", "pv_rcnn"):
+        out = bench_detector(args.child, cfg, scan, args.repeats)
     else:
         out = bench_extractor(args.child, cfg, scan, args.repeats)
     return {"model": args.child, "threads": torch.get_num_threads(), **out}
@@ -331,7 +396,6 @@ def main() -> None:
     if "labeler" in models and labeler_is_duplicate(cfg):
         models.remove("labeler")
         print(f"labeler: same architecture and voxels as {cfg['downstream']['labeler']['backbone']} (not repeated)")
-    print("detectors (PV-RCNN, Voxel R-CNN): not in the package yet")
     header = (f"{'model':<10}{'params':>10}{'train s':>10}{'sample s':>10}{'peak RSS MiB':>14}"
               f"{'above base':>12}   input / notes")
     print(header)
