@@ -11,7 +11,7 @@ import sys
 import pytest
 import yaml
 
-from workflow_helpers import ROOT, copy_workflow, planned_jobs, snakemake, synthesized_shards
+from workflow_helpers import ROOT, copy_workflow, planned_jobs, run_with_fake_cli, snakemake, synthesized_shards
 
 TARGET = "results/pi3det_quadruped_1pct.json"
 TEST_CONFIG = ROOT / "config" / "test.yaml"
@@ -63,21 +63,6 @@ def test_importing_a_box_labeler_uses_the_checkpoint(workdir):
     assert "input: user_pvrcnn.pth" in out and "index_dataset" not in out
 
 
-FAKE_CLI = """#!{python}
-import sys
-from pathlib import Path
-args = sys.argv[1:]
-for flag in ("--out", "--figure"):
-    if flag in args:
-        p = Path(args[args.index(flag) + 1])
-        if p.suffix in (".json", ".pt", ".png", ".npz", ".pkl"):
-            p.parent.mkdir(parents=True, exist_ok=True)
-            p.write_text("{{}}")
-        else:
-            p.mkdir(parents=True, exist_ok=True)
-"""
-
-
 @pytest.fixture(scope="module")
 def completed(tmp_path_factory):
     """The detection target and the segmentation headline run with a fake CLI, so the next
@@ -85,16 +70,8 @@ def completed(tmp_path_factory):
     wd = with_detector_configs(copy_workflow(tmp_path_factory.mktemp("wf_det_rerun")))
     cfg = wd / "rerun.yaml"
     cfg.write_text(yaml.safe_dump({"seed": 0}))
-    bin_dir = tmp_path_factory.mktemp("fakebin")
-    fake = bin_dir / "omnilidar"
-    fake.write_text(FAKE_CLI.format(python=sys.executable))
-    fake.chmod(0o755)
-    env = dict(os.environ, PYTHONPATH=str(wd), PYTHONDONTWRITEBYTECODE="1",
-               PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", TARGET, "results/semkitti_1pct.json",
-           "--configfile", str(cfg)]
-    out = subprocess.run(cmd, cwd=wd, env=env, capture_output=True, text=True)
-    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    run_with_fake_cli(wd, tmp_path_factory.mktemp("fakebin"), TARGET, "results/semkitti_1pct.json",
+                      "--configfile", str(cfg))
     return wd, cfg
 
 

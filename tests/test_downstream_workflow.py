@@ -3,10 +3,6 @@ reruns when a downstream or a generator setting changes (dry runs)."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import pytest
 import yaml
 
@@ -136,37 +132,12 @@ def test_importing_a_labeler_is_a_small_cpu_job(workdir):
     assert "runtime=15, cpus_per_task=1, slurm_partition=cpu, mem_mb=4000" in imported
     assert "gpu=" not in imported.split("rule train_labeler:")[-1] and "input: user_labeler.pt" in imported
 
-# Stands in for the omnilidar CLI in the rerun tests: creates the outputs named by
-# --out / --figure (a directory when the name has no file suffix), so that Snakemake
-# runs every job for real and records its params, quickly.
-FAKE_CLI = """#!{python}
-import sys
-from pathlib import Path
-args = sys.argv[1:]
-for flag in ("--out", "--figure"):
-    if flag in args:
-        p = Path(args[args.index(flag) + 1])
-        if p.suffix in (".json", ".pt", ".png", ".npz", ".pkl", ".html"):
-            p.parent.mkdir(parents=True, exist_ok=True)
-            p.write_text("{{}}")
-        else:
-            p.mkdir(parents=True, exist_ok=True)
-"""
-
-
 def _fake_completed_run(workdir, target, cfg, tmp_path):
     """Run the target's whole DAG with the fake CLI, so the next dry run shows only
     what a config change reruns."""
-    bin_dir = tmp_path / "fakebin"
-    bin_dir.mkdir()
-    fake = bin_dir / "omnilidar"
-    fake.write_text(FAKE_CLI.format(python=sys.executable))
-    fake.chmod(0o755)
-    env = dict(os.environ, PYTHONPATH=str(workdir), PYTHONDONTWRITEBYTECODE="1",
-               PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", target, "--configfile", str(cfg)]
-    out = subprocess.run(cmd, cwd=workdir, env=env, capture_output=True, text=True)
-    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    from workflow_helpers import run_with_fake_cli
+
+    run_with_fake_cli(workdir, tmp_path / "fakebin", target, "--configfile", str(cfg))
     assert _jobs(workdir, target, "--configfile", str(cfg)) == {}
 
 
