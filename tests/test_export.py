@@ -291,3 +291,24 @@ def test_a_second_export_replaces_the_first(tmp_path, shards):
     assert (out / "ImageSets" / "train.txt").read_text().split() == ["000000", "000001", "000002"]
     assert (out / "ImageSets" / "val.txt").read_text() == "" and load_pickle(out / "custom_infos_val.pkl") == []
     assert not (out / "points" / "000003.npy").exists()
+
+
+def test_mmdet3d_object_sample_database(tmp_path, shards):
+    samples, _, boxes = shards
+    code, out = export(tmp_path, "mmdet3d-det", samples, boxes=boxes, val_every=0)
+    assert code == 0
+    db = load_pickle(out / "kitti_dbinfos_train.pkl")
+    assert sorted(db) == ["Car", "Pedestrian"] and [len(db["Car"]), len(db["Pedestrian"])] == [3, 2]
+    groups = []
+    for name, entries in db.items():
+        for e in entries:
+            assert set(e) == {"name", "path", "image_idx", "gt_idx", "box3d_lidar", "num_points_in_gt", "difficulty",
+                              "group_id", "score"}
+            src_box = np.float32(BOXES[source_of(f"{e['image_idx']:06d}")][0][e["gt_idx"]])
+            assert e["box3d_lidar"].dtype == np.float32
+            np.testing.assert_allclose(e["box3d_lidar"], [*src_box[:2], src_box[2] - src_box[5] / 2, *src_box[3:]], atol=1e-6)
+            pts = np.fromfile(out / e["path"], np.float32).reshape(-1, 4)
+            assert e["num_points_in_gt"] == len(pts) == 60
+            assert (pts[:, 2] >= -1e-4).all() and (pts[:, 2] <= src_box[5] + 1e-4).all()  # above the bottom centre
+            groups.append(e["group_id"])
+    assert sorted(groups) == list(range(5))

@@ -16,7 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from omnilidar.downstream.det.ops.points import points_in_boxes_mask
 from omnilidar.errors import InputError
 from omnilidar.io import pi3det, semantickitti
 from omnilidar.manifest import MANIFEST_NAME
@@ -175,6 +177,14 @@ def load_labels(frame: SourceFrame, num_points: int) -> np.ndarray:
     if unknown:
         raise InputError(frame.labels, f"semantic ids {unknown[:5]} are not SemanticKITTI raw ids")
     return labels
+
+
+def inside_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(N, M) bool: which points lie in which box (faces count as inside; OpenPCDet's
+    points_in_boxes_cpu and mmdet3d's points_in_rbbox agree up to points on the faces)."""
+    if len(boxes) == 0:
+        return np.zeros((len(points), 0), bool)
+    return points_in_boxes_mask(torch.from_numpy(points[:, :3]), torch.from_numpy(np.asarray(boxes, np.float32))).numpy()
 
 
 def assign_splits(count: int, val_every: int) -> list[str]:

@@ -6,6 +6,12 @@ update_kitti_infos, read by mmdet3d/datasets/kitti_dataset.py and det3d_dataset.
     ROOT/training/velodyne/<id>.bin    float32 x, y, z, intensity (data_prefix pts='training/velodyne')
     ROOT/kitti_infos_{train,val}.pkl   {'metainfo': {'categories', 'dataset': 'kitti', 'info_version': '1.1'},
                                         'data_list': [data info, ...]}
+    ROOT/kitti_gt_database/<id>_<name>_<i>.bin, ROOT/kitti_dbinfos_train.pkl
+                                       the ObjectSample database of the train split, as
+                                       tools/dataset_converters/create_gt_database.py writes it: each
+                                       box's points relative to its bottom centre, and {name: [{'name',
+                                       'path', 'image_idx', 'gt_idx', 'box3d_lidar' (bottom centre, float32),
+                                       'num_points_in_gt', 'difficulty', 'group_id', 'score'}]}
 
 A data info holds ``sample_idx`` (int: the id), ``lidar_points`` {num_pts_feats, lidar_path
 (file name only, as update_kitti_infos keeps), Tr_velo_to_cam, Tr_imu_to_velo}, ``images``
@@ -33,11 +39,9 @@ import pickle
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from omnilidar.downstream.det.ops.points import points_in_boxes_mask
 from omnilidar.errors import InputError
-from omnilidar.io.export.frames import ExportFrame, load_points, split_names
+from omnilidar.io.export.frames import ExportFrame, inside_boxes, load_points, split_names
 from omnilidar.io.kitti_object import wrap_angle
 
 # KittiDataset.METAINFO['classes'] order; update_kitti_infos writes it as metainfo['categories'].
@@ -57,7 +61,7 @@ def camera_boxes(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.column_stack([location, b[:, 3], b[:, 5], b[:, 4], ry]), alpha
 
 
-def instances(boxes: np.ndarray, names: tuple[str, ...], points: np.ndarray, where) -> list[dict]:
+def instances(boxes: np.ndarray, names: tuple[str, ...], inside: np.ndarray, where) -> list[dict]:
     """The ``instances`` of one frame (plain Python values, as update_kitti_infos stores them)."""
     unknown = sorted(set(names) - set(KITTI_CLASSES))
     if unknown:
@@ -65,7 +69,7 @@ def instances(boxes: np.ndarray, names: tuple[str, ...], points: np.ndarray, whe
     if len(boxes) == 0:
         return []
     cam, alpha = camera_boxes(boxes)
-    counts = points_in_boxes_mask(torch.from_numpy(points[:, :3]), torch.from_numpy(boxes)).sum(0).tolist()
+    counts = inside.sum(0).tolist()
     out = []
     for i, name in enumerate(names):
         label = KITTI_CLASSES.index(name)
@@ -77,7 +81,27 @@ def instances(boxes: np.ndarray, names: tuple[str, ...], points: np.ndarray, whe
     return out
 
 
-def frame_info(frame: ExportFrame, points: np.ndarray) -> dict:
+def database_entries(root: Path, frame: ExportFrame, points: np.ndarray, inside: np.ndarray,
+                     group_start: int) -> list[dict]:
+    """Write each box's points under kitti_gt_database/; return their db infos (group ids from ``group_start``)."""
+    boxes, names = frame.source.boxes, frame.source.box_names
+    if len(boxes) == 0:
+        return []
+    bottom = boxes.astype(np.float32).copy()
+    bottom[:, 2] -= 0.5 * bottom[:, 5]  # mmdet3d LiDAR boxes sit on their bottom centre
+    entries = []
+    for i, name in enumerate(names):
+        local = points[inside[:, i]].copy()
+        local[:, :3] -= bottom[i, :3]
+        rel = f"kitti_gt_database/{frame.name}_{name}_{i}.bin"
+        local.astype(np.float32).tofile(root / rel)
+        entries.append({"name": name, "path": rel, "image_idx": frame.index, "gt_idx": i, "box3d_lidar": bottom[i],
+                        "num_points_in_gt": int(len(local)), "difficulty": np.int64(0), "group_id": group_start + i,
+                        "score": np.float64(0.0)})
+    return entries
+
+
+def frame_info(frame: ExportFrame, inside: np.ndarray) -> dict:
     identity = np.eye(4).tolist()
     return {
         "sample_idx": frame.index,
@@ -86,7 +110,7 @@ def frame_info(frame: ExportFrame, points: np.ndarray) -> dict:
                    "R0_rect": identity},
         "lidar_points": {"num_pts_feats": NUM_PTS_FEATS, "lidar_path": f"{frame.name}.bin",
                          "Tr_velo_to_cam": LIDAR_TO_CAMERA.tolist(), "Tr_imu_to_velo": identity},
-        "instances": instances(frame.source.boxes, frame.source.box_names, points, frame.source.points),
+        "instances": instances(frame.source.boxes, frame.source.box_names, inside, frame.source.points),
     }
 
 
@@ -97,14 +121,23 @@ def metainfo() -> dict:
 def write(root: Path, planned: list[ExportFrame]) -> dict:
     """Write scans and info files under ``root``; return counts per split."""
     (root / "training" / "velodyne").mkdir(parents=True)
-    infos = {}
+    (root / "kitti_gt_database").mkdir()
+    infos, database, groups = {}, {}, 0
     for frame in planned:
         points = load_points(frame.source)
         points.tofile(root / "training" / "velodyne" / f"{frame.name}.bin")
-        infos[frame.index] = frame_info(frame, points)
+        inside = inside_boxes(points, frame.source.boxes)
+        infos[frame.index] = frame_info(frame, inside)
+        if frame.split == "train":
+            for entry in database_entries(root, frame, points, inside, groups):
+                database.setdefault(entry["name"], []).append(entry)
+            groups += len(frame.source.boxes)
     summary = {}
     for split, frames in split_names(planned).items():
         with open(root / f"kitti_infos_{split}.pkl", "wb") as fh:
             pickle.dump({"metainfo": metainfo(), "data_list": [infos[f.index] for f in frames]}, fh)
         summary[split] = {"frames": len(frames), "boxes": int(sum(len(f.source.boxes) for f in frames))}
+    with open(root / "kitti_dbinfos_train.pkl", "wb") as fh:
+        pickle.dump(database, fh)
+    summary["gt_database"] = {name: len(v) for name, v in sorted(database.items())}
     return summary

@@ -28,10 +28,8 @@ import pickle
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from omnilidar.downstream.det.ops.points import points_in_boxes_mask
-from omnilidar.io.export.frames import ExportFrame, load_points, split_names
+from omnilidar.io.export.frames import ExportFrame, inside_boxes, load_points, split_names
 
 NUM_FEATURES = 4
 
@@ -59,7 +57,7 @@ def _database_entries(root: Path, frame: ExportFrame, points: np.ndarray) -> lis
     boxes, names = frame.source.boxes, frame.source.box_names
     if len(boxes) == 0:
         return []
-    inside = points_in_boxes_mask(torch.from_numpy(points[:, :3]), torch.from_numpy(boxes)).numpy()
+    inside = inside_boxes(points, boxes)
     entries = []
     for i, (box, name) in enumerate(zip(boxes, names)):
         local = points[inside[:, i]].copy()
