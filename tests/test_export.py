@@ -312,3 +312,42 @@ def test_mmdet3d_object_sample_database(tmp_path, shards):
             assert (pts[:, 2] >= -1e-4).all() and (pts[:, 2] <= src_box[5] + 1e-4).all()  # above the bottom centre
             groups.append(e["group_id"])
     assert sorted(groups) == list(range(5))
+
+
+def test_a_shard_written_by_the_sampler_exports(tmp_path):
+    """The real `omnilidar sample` shard layout (tiny generator), labelled the way the pseudo-labeller writes."""
+    import torch
+
+    from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
+    from omnilidar.generator.sampling import sample_shard
+    from omnilidar.generator.text import build_prompt_cache
+    from omnilidar.generator.unet import build_denoiser
+    from test_generator_fixtures import tiny_settings
+    from test_generator_training import FakeEncoder
+
+    settings = tiny_settings()
+    cache = build_prompt_cache(settings["prompts"], FakeEncoder())
+    with torch.random.fork_rng():
+        torch.manual_seed(0)
+        den = build_denoiser(settings, cache["dim"], 1)
+        for p in den.parameters():
+            p.data.add_(0.05 * torch.randn_like(p))
+    payload = {"format": CHECKPOINT_FORMAT, "state_dict": den.state_dict(), "config": settings, "domains": ["Vehicle"],
+               "text": {"encoder": "fake", "model": "fake", "dim": cache["dim"]}, "seed": 0, "iterations": 0}
+    torch.save(payload, tmp_path / "ckpt.pt")
+    den, payload = load_generator(tmp_path / "ckpt.pt")
+    shard = tmp_path / "samples" / "vehicle" / "shard_0"
+    sample_shard(den, payload, cache, "Vehicle", 0, 2, settings["sampling"], 3, shard, log=lambda *_: None)
+    scans = sorted((shard / "velodyne").glob("*.bin"))
+    pseudo = tmp_path / "pseudo" / "vehicle" / "shard_0"
+    with atomic_path(pseudo) as tmp:
+        (tmp / "labels").mkdir(parents=True)
+        for s in scans:
+            semantickitti.write_label(tmp / "labels" / f"{s.stem}.label", scan_labels("1", s.stat().st_size // 16))
+    code, out = export(tmp_path, "mmdet3d-seg", [shard], labels=[pseudo], val_every=0)
+    assert code == 0
+    infos = load_pickle(out / "semantickitti_infos_train.pkl")["data_list"]
+    kept = [s for s in scans if s.stat().st_size]
+    assert len(infos) == len(kept) > 0
+    for entry, scan in zip(infos, kept):
+        assert (out / entry["lidar_points"]["lidar_path"]).read_bytes() == scan.read_bytes()
