@@ -351,3 +351,20 @@ def test_a_shard_written_by_the_sampler_exports(tmp_path):
     assert len(infos) == len(kept) > 0
     for entry, scan in zip(infos, kept):
         assert (out / entry["lidar_points"]["lidar_path"]).read_bytes() == scan.read_bytes()
+
+
+def test_shift_coor_moves_points_and_boxes_alike(tmp_path, shards):
+    samples, _, boxes = shards
+    out = tmp_path / "shifted"
+    assert main(["export", "--format", "openpcdet", "--samples", str(samples[0]), "--boxes", str(boxes[0]),
+                 "--shift-coor", "0", "0", "8.27", "--out", str(out)]) == 0
+    info = load_pickle(out / "custom_infos_train.pkl")[0]
+    shifted = np.asarray(BOXES["000000"][0], np.float32)
+    shifted[:, 2] += np.float32(8.27)
+    np.testing.assert_array_equal(info["annos"]["gt_boxes_lidar"], shifted)
+    points = np.load(out / "points" / "000000.npy")
+    np.testing.assert_array_equal(points[:, 2], scan_points("000000")[:, 2] + np.float32(8.27))
+    np.testing.assert_array_equal(points[:, [0, 1, 3]], scan_points("000000")[:, [0, 1, 3]])
+    assert json.loads((out / "export.json").read_text())["shift_coor"] == [0.0, 0.0, 8.27]
+    db = load_pickle(out / "custom_dbinfos_train.pkl")
+    assert [e["num_points_in_gt"] for e in db["Car"]] == [60, 60]  # the shifted points still fall in the shifted box

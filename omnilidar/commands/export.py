@@ -16,6 +16,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--format", required=True, choices=FORMATS, help="target layout")
     parser.add_argument("--val-every", type=int, default=0,
                         help="put the first exported scan and every k-th after it in the val split (0: all train)")
+    parser.add_argument("--shift-coor", type=float, nargs=3, default=[0.0, 0.0, 0.0], metavar=("X", "Y", "Z"),
+                        help="added to points and box centres (OpenPCDet's SHIFT_COOR, e.g. the platform's "
+                             "downstream.det shift so that the ground sits near -1.7 m); default 0 0 0")
     parser.add_argument("--out", required=True, help="export directory (appears only when complete)")
 
 
@@ -52,7 +55,7 @@ def run(args) -> int:
     out = Path(args.out)
     _check_out(out)
     frames = export_frames.collect_frames(args.samples, args.labels, args.boxes)
-    planned, empty = export_frames.plan_export(frames, args.val_every)
+    planned, empty = export_frames.plan_export(frames, args.val_every, args.shift_coor)
     if args.format == "openpcdet":
         from omnilidar.io.export import openpcdet as writer
     elif args.format == "mmdet3d-seg":
@@ -63,7 +66,7 @@ def run(args) -> int:
         tmp.mkdir(parents=True)
         summary = writer.write(tmp, planned)
         record = {
-            "format": args.format, "splits": summary, "val_every": args.val_every,
+            "format": args.format, "splits": summary, "val_every": args.val_every, "shift_coor": list(args.shift_coor),
             "frames": [{"id": f.name, "split": f.split, "points": str(f.source.points),
                         **({"labels": str(f.source.labels)} if f.source.labels else {}),
                         **({"boxes": len(f.source.boxes)} if f.source.boxes is not None else {})} for f in planned],

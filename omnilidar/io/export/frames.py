@@ -197,18 +197,35 @@ def assign_splits(count: int, val_every: int) -> list[str]:
 
 @dataclass(frozen=True)
 class ExportFrame:
-    """A frame as exported: its new name (``%06d``, numbered over the export), split and source."""
+    """A frame as exported: its new name (``%06d``, numbered over the export), split and source,
+    with ``shift`` (x, y, z) added to its points and box centres (OpenPCDet's SHIFT_COOR)."""
 
     index: int
     split: str
     source: SourceFrame
+    shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def name(self) -> str:
         return f"{self.index:06d}"
 
+    def points(self) -> np.ndarray:
+        points = load_points(self.source)
+        points[:, :3] += np.asarray(self.shift, np.float32)
+        return points
 
-def plan_export(frames: list[SourceFrame], val_every: int) -> tuple[list[ExportFrame], list[SourceFrame]]:
+    @property
+    def boxes(self) -> np.ndarray:
+        boxes = np.asarray(self.source.boxes, np.float32).reshape(-1, 7).copy()
+        boxes[:, :3] += np.asarray(self.shift, np.float32)
+        return boxes
+
+    @property
+    def box_names(self) -> tuple[str, ...]:
+        return self.source.box_names
+
+
+def plan_export(frames: list[SourceFrame], val_every: int, shift=(0.0, 0.0, 0.0)) -> tuple[list[ExportFrame], list[SourceFrame]]:
     """Number the frames that have points and split them; returns (exported, empty scans left out).
 
     Generated scans can come out empty; neither OpenPCDet nor mmdet3d can train on an
@@ -218,8 +235,11 @@ def plan_export(frames: list[SourceFrame], val_every: int) -> tuple[list[ExportF
     empty = [f for f in frames if f.points.stat().st_size == 0]
     if not kept:
         raise InputError(frames[0].points.parent if frames else None, "every scan of the sample shards is empty")
+    shift = tuple(float(v) for v in shift)
+    if len(shift) != 3 or not np.isfinite(shift).all():
+        raise InputError(None, f"--shift-coor needs three finite numbers, got {shift}")
     splits = assign_splits(len(kept), val_every)
-    return [ExportFrame(i, s, f) for i, (s, f) in enumerate(zip(splits, kept))], empty
+    return [ExportFrame(i, s, f, shift) for i, (s, f) in enumerate(zip(splits, kept))], empty
 
 
 def split_names(planned: list[ExportFrame]) -> dict[str, list[ExportFrame]]:

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from omnilidar.errors import InputError
-from omnilidar.io.export.frames import ExportFrame, inside_boxes, load_points, split_names
+from omnilidar.io.export.frames import ExportFrame, inside_boxes, split_names
 from omnilidar.io.kitti_object import wrap_angle
 
 # KittiDataset.METAINFO['classes'] order; update_kitti_infos writes it as metainfo['categories'].
@@ -84,7 +84,7 @@ def instances(boxes: np.ndarray, names: tuple[str, ...], inside: np.ndarray, whe
 def database_entries(root: Path, frame: ExportFrame, points: np.ndarray, inside: np.ndarray,
                      group_start: int) -> list[dict]:
     """Write each box's points under kitti_gt_database/; return their db infos (group ids from ``group_start``)."""
-    boxes, names = frame.source.boxes, frame.source.box_names
+    boxes, names = frame.boxes, frame.box_names
     if len(boxes) == 0:
         return []
     bottom = boxes.astype(np.float32).copy()
@@ -110,7 +110,7 @@ def frame_info(frame: ExportFrame, inside: np.ndarray) -> dict:
                    "R0_rect": identity},
         "lidar_points": {"num_pts_feats": NUM_PTS_FEATS, "lidar_path": f"{frame.name}.bin",
                          "Tr_velo_to_cam": LIDAR_TO_CAMERA.tolist(), "Tr_imu_to_velo": identity},
-        "instances": instances(frame.source.boxes, frame.source.box_names, inside, frame.source.points),
+        "instances": instances(frame.boxes, frame.box_names, inside, frame.source.points),
     }
 
 
@@ -124,19 +124,19 @@ def write(root: Path, planned: list[ExportFrame]) -> dict:
     (root / "kitti_gt_database").mkdir()
     infos, database, groups = {}, {}, 0
     for frame in planned:
-        points = load_points(frame.source)
+        points = frame.points()
         points.tofile(root / "training" / "velodyne" / f"{frame.name}.bin")
-        inside = inside_boxes(points, frame.source.boxes)
+        inside = inside_boxes(points, frame.boxes)
         infos[frame.index] = frame_info(frame, inside)
         if frame.split == "train":
             for entry in database_entries(root, frame, points, inside, groups):
                 database.setdefault(entry["name"], []).append(entry)
-            groups += len(frame.source.boxes)
+            groups += len(frame.boxes)
     summary = {}
     for split, frames in split_names(planned).items():
         with open(root / f"kitti_infos_{split}.pkl", "wb") as fh:
             pickle.dump({"metainfo": metainfo(), "data_list": [infos[f.index] for f in frames]}, fh)
-        summary[split] = {"frames": len(frames), "boxes": int(sum(len(f.source.boxes) for f in frames))}
+        summary[split] = {"frames": len(frames), "boxes": int(sum(len(f.boxes) for f in frames))}
     with open(root / "kitti_dbinfos_train.pkl", "wb") as fh:
         pickle.dump(database, fh)
     summary["gt_database"] = {name: len(v) for name, v in sorted(database.items())}

@@ -27,7 +27,7 @@ from __future__ import annotations
 import pickle
 from pathlib import Path
 
-from omnilidar.io.export.frames import ExportFrame, load_labels, load_points, split_names
+from omnilidar.io.export.frames import ExportFrame, load_labels, split_names
 
 NUM_PTS_FEATS = 4
 SEQUENCE = {"train": "00", "val": "08"}
@@ -50,7 +50,7 @@ def write(root: Path, planned: list[ExportFrame]) -> dict:
         (root / "sequences" / seq / "velodyne").mkdir(parents=True)
         (root / "sequences" / seq / "labels").mkdir(parents=True)
     for frame in planned:
-        points = load_points(frame.source)
+        points = frame.points()
         labels = load_labels(frame.source, len(points))
         points_rel, labels_rel = relative_paths(frame)
         points.tofile(root / points_rel)

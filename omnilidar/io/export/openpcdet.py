@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.io.export.frames import ExportFrame, inside_boxes, load_points, split_names
+from omnilidar.io.export.frames import ExportFrame, inside_boxes, split_names
 
 NUM_FEATURES = 4
 
@@ -44,17 +44,17 @@ def label_lines(boxes: np.ndarray, names: tuple[str, ...]) -> str:
 
 
 def frame_info(frame: ExportFrame) -> dict:
-    boxes = frame.source.boxes
+    boxes = frame.boxes
     return {
         "point_cloud": {"num_features": NUM_FEATURES, "lidar_idx": frame.name},
-        "annos": {"name": np.array(frame.source.box_names, dtype=str).reshape(-1),
+        "annos": {"name": np.array(frame.box_names, dtype=str).reshape(-1),
                   "gt_boxes_lidar": np.asarray(boxes, np.float32).reshape(-1, 7)},
     }
 
 
 def _database_entries(root: Path, frame: ExportFrame, points: np.ndarray) -> list[dict]:
     """Write the points of each box of a train frame under gt_database/; return their db infos."""
-    boxes, names = frame.source.boxes, frame.source.box_names
+    boxes, names = frame.boxes, frame.box_names
     if len(boxes) == 0:
         return []
     inside = inside_boxes(points, boxes)
@@ -75,9 +75,9 @@ def write(root: Path, planned: list[ExportFrame]) -> dict:
         (root / folder).mkdir(parents=True)
     database: dict[str, list[dict]] = {}
     for frame in planned:
-        points = load_points(frame.source)
+        points = frame.points()
         np.save(root / "points" / f"{frame.name}.npy", points)
-        (root / "labels" / f"{frame.name}.txt").write_text(label_lines(frame.source.boxes, frame.source.box_names))
+        (root / "labels" / f"{frame.name}.txt").write_text(label_lines(frame.boxes, frame.box_names))
         if frame.split == "train":
             for entry in _database_entries(root, frame, points):
                 database.setdefault(entry["name"], []).append(entry)
@@ -86,7 +86,7 @@ def write(root: Path, planned: list[ExportFrame]) -> dict:
         (root / "ImageSets" / f"{split}.txt").write_text("".join(f"{f.name}\n" for f in frames))
         with open(root / f"custom_infos_{split}.pkl", "wb") as fh:
             pickle.dump([frame_info(f) for f in frames], fh)
-        summary[split] = {"frames": len(frames), "boxes": int(sum(len(f.source.boxes) for f in frames))}
+        summary[split] = {"frames": len(frames), "boxes": int(sum(len(f.boxes) for f in frames))}
     with open(root / "custom_dbinfos_train.pkl", "wb") as fh:
         pickle.dump(database, fh)
     summary["gt_database"] = {name: len(v) for name, v in sorted(database.items())}
