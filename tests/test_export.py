@@ -368,3 +368,20 @@ def test_shift_coor_moves_points_and_boxes_alike(tmp_path, shards):
     assert json.loads((out / "export.json").read_text())["shift_coor"] == [0.0, 0.0, 8.27]
     db = load_pickle(out / "custom_dbinfos_train.pkl")
     assert [e["num_points_in_gt"] for e in db["Car"]] == [60, 60]  # the shifted points still fall in the shifted box
+
+
+def test_rename_class_for_openpcdet_custom_configs(tmp_path, shards, capsys):
+    samples, _, boxes = shards
+    out = tmp_path / "renamed"
+    assert main(["export", "--format", "openpcdet", "--samples", str(samples[0]), "--boxes", str(boxes[0]),
+                 "--rename-class", "Car=Vehicle", "--out", str(out)]) == 0
+    info = load_pickle(out / "custom_infos_train.pkl")[0]
+    assert info["annos"]["name"].tolist() == ["Vehicle", "Pedestrian"]
+    assert (out / "labels" / "000000.txt").read_text().splitlines()[0].endswith(" Vehicle")
+    assert sorted(load_pickle(out / "custom_dbinfos_train.pkl")) == ["Pedestrian", "Vehicle"]
+    code = main(["export", "--format", "mmdet3d-det", "--samples", str(samples[0]), "--boxes", str(boxes[0]),
+                 "--rename-class", "Car=Vehicle", "--out", str(tmp_path / "kitti")])
+    one_line_error(capsys, code, tmp_path / "kitti", "['Vehicle'] have no KITTI class")
+    code = main(["export", "--format", "openpcdet", "--samples", str(samples[0]), "--boxes", str(boxes[0]),
+                 "--rename-class", "Truck=Lorry", "--out", str(tmp_path / "bad")])
+    one_line_error(capsys, code, tmp_path / "bad", "--rename-class 'Truck=Lorry'")

@@ -19,6 +19,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--shift-coor", type=float, nargs=3, default=[0.0, 0.0, 0.0], metavar=("X", "Y", "Z"),
                         help="added to points and box centres (OpenPCDet's SHIFT_COOR, e.g. the platform's "
                              "downstream.det shift so that the ground sits near -1.7 m); default 0 0 0")
+    parser.add_argument("--rename-class", action="append", metavar="OLD=NEW",
+                        help="write class OLD as NEW, e.g. Car=Vehicle for OpenPCDet's custom configs (repeatable)")
     parser.add_argument("--out", required=True, help="export directory (appears only when complete)")
 
 
@@ -54,8 +56,9 @@ def run(args) -> int:
     _check_inputs(args)
     out = Path(args.out)
     _check_out(out)
+    renames = export_frames.parse_renames(args.rename_class)
     frames = export_frames.collect_frames(args.samples, args.labels, args.boxes)
-    planned, empty = export_frames.plan_export(frames, args.val_every, args.shift_coor)
+    planned, empty = export_frames.plan_export(frames, args.val_every, args.shift_coor, renames)
     if args.format == "openpcdet":
         from omnilidar.io.export import openpcdet as writer
     elif args.format == "mmdet3d-seg":
@@ -67,6 +70,7 @@ def run(args) -> int:
         summary = writer.write(tmp, planned)
         record = {
             "format": args.format, "splits": summary, "val_every": args.val_every, "shift_coor": list(args.shift_coor),
+            "renamed_classes": dict(renames),
             "frames": [{"id": f.name, "split": f.split, "points": str(f.source.points),
                         **({"labels": str(f.source.labels)} if f.source.labels else {}),
                         **({"boxes": len(f.source.boxes)} if f.source.boxes is not None else {})} for f in planned],

@@ -204,6 +204,7 @@ class ExportFrame:
     split: str
     source: SourceFrame
     shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    renames: tuple[tuple[str, str], ...] = ()  # (our class name, exported name)
 
     @property
     def name(self) -> str:
@@ -222,10 +223,26 @@ class ExportFrame:
 
     @property
     def box_names(self) -> tuple[str, ...]:
-        return self.source.box_names
+        renames = dict(self.renames)
+        return tuple(renames.get(n, n) for n in self.source.box_names)
 
 
-def plan_export(frames: list[SourceFrame], val_every: int, shift=(0.0, 0.0, 0.0)) -> tuple[list[ExportFrame], list[SourceFrame]]:
+def parse_renames(pairs: list[str] | None) -> tuple[tuple[str, str], ...]:
+    """``["Car=Vehicle", ...]`` -> ((Car, Vehicle), ...); the old names must be our classes."""
+    out = []
+    for pair in pairs or []:
+        old, sep, new = pair.partition("=")
+        if not sep or old not in pi3det.CLASSES or not new or any(c.isspace() for c in new):
+            raise InputError(None, f"--rename-class {pair!r}: expected OLD=NEW with OLD one of "
+                                   f"{', '.join(pi3det.CLASSES)} and NEW one word")
+        out.append((old, new))
+    if len({old for old, _ in out}) != len(out):
+        raise InputError(None, "--rename-class names a class twice")
+    return tuple(out)
+
+
+def plan_export(frames: list[SourceFrame], val_every: int, shift=(0.0, 0.0, 0.0),
+                renames: tuple[tuple[str, str], ...] = ()) -> tuple[list[ExportFrame], list[SourceFrame]]:
     """Number the frames that have points and split them; returns (exported, empty scans left out).
 
     Generated scans can come out empty; neither OpenPCDet nor mmdet3d can train on an
@@ -239,7 +256,7 @@ def plan_export(frames: list[SourceFrame], val_every: int, shift=(0.0, 0.0, 0.0)
     if len(shift) != 3 or not np.isfinite(shift).all():
         raise InputError(None, f"--shift-coor needs three finite numbers, got {shift}")
     splits = assign_splits(len(kept), val_every)
-    return [ExportFrame(i, s, f, shift) for i, (s, f) in enumerate(zip(splits, kept))], empty
+    return [ExportFrame(i, s, f, shift, renames) for i, (s, f) in enumerate(zip(splits, kept))], empty
 
 
 def split_names(planned: list[ExportFrame]) -> dict[str, list[ExportFrame]]:
