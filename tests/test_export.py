@@ -134,8 +134,8 @@ def test_openpcdet_custom_dataset(tmp_path, shards):
                                           annos["gt_boxes_lidar"])
     db = load_pickle(out / "custom_dbinfos_train.pkl")
     train_boxes = [(i, b, n) for e in SPLIT["train"] for i, (b, n) in enumerate(zip(*BOXES[source_of(e)]))]
-    assert sorted(db) == sorted({n for _, _, n in train_boxes})
-    assert sum(len(v) for v in db.values()) == len(train_boxes)
+    assert sorted(db) == ["Car", "Pedestrian"]  # every exported class, also one with no train box (Pedestrian)
+    assert {k: len(v) for k, v in db.items()} == {c: sum(n == c for _, _, n in train_boxes) for c in db} == {"Car": 1, "Pedestrian": 0}
     for entries in db.values():
         for entry in entries:
             assert set(entry) == {"name", "path", "gt_idx", "box3d_lidar", "num_points_in_gt"}

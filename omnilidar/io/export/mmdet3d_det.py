@@ -11,7 +11,8 @@ update_kitti_infos, read by mmdet3d/datasets/kitti_dataset.py and det3d_dataset.
                                        tools/dataset_converters/create_gt_database.py writes it: each
                                        box's points relative to its bottom centre, and {name: [{'name',
                                        'path', 'image_idx', 'gt_idx', 'box3d_lidar' (bottom centre, float32),
-                                       'num_points_in_gt', 'difficulty', 'group_id', 'score'}]}
+                                       'num_points_in_gt', 'difficulty', 'group_id', 'score'}]}, a key
+                                       for every exported class
 
 A data info holds ``sample_idx`` (int: the id), ``lidar_points`` {num_pts_feats, lidar_path
 (file name only, as update_kitti_infos keeps), Tr_velo_to_cam, Tr_imu_to_velo}, ``images``
@@ -122,7 +123,9 @@ def write(root: Path, planned: list[ExportFrame]) -> dict:
     """Write scans and info files under ``root``; return counts per split."""
     (root / "training" / "velodyne").mkdir(parents=True)
     (root / "kitti_gt_database").mkdir()
-    infos, database, groups = {}, {}, 0
+    infos, groups = {}, 0
+    # every exported class gets a key, also one with no train box: the samplers index them by class name
+    database: dict[str, list[dict]] = {name: [] for frame in planned for name in frame.box_names}
     for frame in planned:
         points = frame.points()
         points.tofile(root / "training" / "velodyne" / f"{frame.name}.bin")

@@ -14,7 +14,9 @@
                                      what create_groundtruth_database writes for the gt_sampling
                                      augmentation of custom_dataset.yaml: the points inside each train
                                      box, relative to its centre, and {name: [{'name', 'path', 'gt_idx',
-                                     'box3d_lidar', 'num_points_in_gt'}]}
+                                     'box3d_lidar', 'num_points_in_gt'}]}; every exported class has a
+                                     key, an empty list when no train box has it (the sampler reads
+                                     infos[name] for each of the config's classes)
 
 So a user can train at once (``python train.py --cfg_file ...``) without rerunning
 ``create_custom_infos``; rerunning it on this layout writes the same infos, except for
@@ -73,7 +75,8 @@ def write(root: Path, planned: list[ExportFrame]) -> dict:
     """Write the layout under ``root`` (an empty directory); return counts per split."""
     for folder in ("points", "labels", "ImageSets", "gt_database"):
         (root / folder).mkdir(parents=True)
-    database: dict[str, list[dict]] = {}
+    # every exported class gets a key, also one with no train box: the samplers index them by class name
+    database: dict[str, list[dict]] = {name: [] for frame in planned for name in frame.box_names}
     for frame in planned:
         points = frame.points()
         np.save(root / "points" / f"{frame.name}.npy", points)
