@@ -14,7 +14,8 @@ update_kitti_infos, read by mmdet3d/datasets/kitti_dataset.py and det3d_dataset.
                                        'num_points_in_gt', 'difficulty', 'group_id', 'score'}]}, a key
                                        for every exported class
 
-A data info holds ``sample_idx`` (int: the id), ``lidar_points`` {num_pts_feats, lidar_path
+A data info holds ``sample_idx`` (int: the export id; mmengine's BaseDataset.get_data_info
+replaces it by the position in the dataset, which KittiMetric indexes by), ``lidar_points`` {num_pts_feats, lidar_path
 (file name only, as update_kitti_infos keeps), Tr_velo_to_cam, Tr_imu_to_velo}, ``images``
 {CAM2: {cam2img, lidar2cam, lidar2img}, R0_rect} and ``instances``.
 
