@@ -108,10 +108,12 @@ def source_of(export_id: str) -> str:
     return EXPORTED[int(export_id)]
 
 
-def test_openpcdet_custom_dataset(tmp_path, shards):
+def test_openpcdet_custom_dataset(tmp_path, shards, capsys):
     samples, _, boxes = shards
     code, out = export(tmp_path, "openpcdet", samples, boxes=boxes)
     assert code == 0
+    printed = capsys.readouterr().out
+    assert "Car 1, Pedestrian 0" in printed and "note: no train box of class Pedestrian" in printed
     for split, ids in SPLIT.items():
         assert (out / "ImageSets" / f"{split}.txt").read_text().split() == ids
         infos = load_pickle(out / f"custom_infos_{split}.pkl")

@@ -81,4 +81,10 @@ def run(args) -> int:
         (tmp / EXPORT_RECORD).write_text(json.dumps(record, indent=1))
     counts = ", ".join(f"{s} {v['frames']}" for s, v in summary.items() if s in ("train", "val"))
     print(f"{args.format}: {len(planned)} scans ({counts}), {len(empty)} empty scans left out -> {out}")
+    database = summary.get("gt_database", {})
+    if database:
+        print("box database (train boxes per class): " + ", ".join(f"{k} {v}" for k, v in database.items()))
+    for name in [k for k, v in database.items() if v == 0]:
+        # OpenPCDet's DataBaseSampler stacks an empty list and fails for a sample group without entries
+        print(f"note: no train box of class {name}: leave it out of the box sampling's sample groups")
     return 0
