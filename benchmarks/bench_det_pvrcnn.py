@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 import yaml
 
+from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.models.detector import build_detector
 from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import batch_counts, build_local_aggregation_module
@@ -81,7 +82,7 @@ def whole_detector(section: str, points: int, device, repeats: int) -> None:
     voxelrcnn_bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(voxelrcnn_bench)
     doc = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())
-    cfg = voxelrcnn_bench.merge(doc["MODEL"], doc["CPU_SMALL"]) if section == "small" else copy.deepcopy(doc["MODEL"])
+    cfg = deep_merge(doc["MODEL"], doc["CPU_SMALL"]) if section == "small" else copy.deepcopy(doc["MODEL"])
     anchors = cfg["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"]
     cfg["DENSE_HEAD"]["ANCHOR_GENERATOR_CONFIG"] = [a for a in anchors if a["class_name"] == "Car"]
     torch.manual_seed(0)

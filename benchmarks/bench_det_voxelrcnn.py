@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 import yaml
 
+from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.models.detector import build_detector
 
 RANGE = [0.0, -40.0, -3.0, 70.4, 40.0, 1.0]
@@ -63,15 +64,6 @@ def synthetic_batch(num_points: int, batch_size: int, seed: int, max_points: int
             "voxel_coords": uniq.int(), "gt_boxes": torch.stack(gts)}
 
 
-def merge(base: dict, overrides: dict) -> dict:
-    """CPU_SMALL merged into MODEL key by key (dicts recursively), as the workflow does."""
-    out = copy.deepcopy(base)
-    for key, value in overrides.items():
-        out[key] = merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
-            else copy.deepcopy(value)
-    return out
-
-
 def to_device(batch: dict, device) -> dict:
     return {k: v.to(device) if torch.is_tensor(v) else v for k, v in batch.items()}
 
@@ -91,7 +83,7 @@ def main() -> None:
     args = parser.parse_args()
     device = torch.device(args.device)
     doc = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
-    cfg = merge(doc["MODEL"], doc["CPU_SMALL"]) if args.config == "small" else doc["MODEL"]
+    cfg = deep_merge(doc["MODEL"], doc["CPU_SMALL"]) if args.config == "small" else doc["MODEL"]
     torch.manual_seed(0)
     model = build_detector(copy.deepcopy(cfg), 1, ["Car"], RANGE, VOXEL).to(device)
     batch = synthetic_batch(args.points, args.batch_size, seed=0)

@@ -13,10 +13,13 @@ trainers.
 from __future__ import annotations
 
 import itertools
+import json
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from omnilidar.errors import InputError
 
 _TAG = "__omnilidar_type__"
 _RUNNER_NUMBERS = itertools.count()
@@ -232,3 +235,71 @@ def resume_point(run_dir: Path, provenance: dict, iterations: int, log=print) ->
             + ", ".join(f"{k} {a} -> {b}" for k, (a, b) in sorted(moved.items())))
     log(f"resuming at iteration {step} from {ckpt.name} in {run_dir} (provenance matches)")
     return ckpt
+
+
+def save_tagged_payload(payload: dict, out: str | Path, fmt: str) -> None:
+    """Write a final payload (tensors, dicts, lists, strings, numbers) tagged ``format: fmt``, atomically."""
+    from omnilidar.io.atomic import atomic_path
+
+    with atomic_path(out) as tmp:
+        torch.save({"format": fmt, **payload}, tmp)
+
+
+def load_weights_only(path: Path, what: str):
+    """``torch.load(weights_only=True)`` with one clear error for a missing, corrupt or unsafe file."""
+    if not path.is_file():
+        raise InputError(path, f"{what} not found")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # corrupt, truncated or unsafe pickles
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise InputError(path, f"not a readable {what} (loaded with weights_only=True): {first}") from None
+
+
+def load_tagged_payload(path: str | Path, fmt: str, what: str) -> dict:
+    """A payload written by :func:`save_tagged_payload` with format ``fmt`` (weights-only)."""
+    path = Path(path)
+    payload = load_weights_only(path, what)
+    if not isinstance(payload, dict) or payload.get("format") != fmt:
+        raise InputError(path, f"not an omnilidar {what} ({fmt})")
+    return payload
+
+
+def iteration_runner(model, work_dir: Path, loader, iterations: int, optim_wrapper, schedule: dict,
+                     custom_hooks: list, meta: dict, resume_from: Path | None, seed: int):
+    """An mmengine Runner of a downstream trainer: counted in iterations, one weights-only checkpoint
+    kept every ``schedule['checkpoint_interval']``, resuming from ``resume_from`` when given."""
+    from mmengine.runner import Runner
+
+    return Runner(
+        model=model,
+        work_dir=str(work_dir),
+        train_dataloader=loader,
+        train_cfg=dict(by_epoch=False, max_iters=iterations, val_interval=iterations + 1),
+        optim_wrapper=optim_wrapper,
+        default_hooks=iteration_hooks(schedule["log_interval"], schedule["checkpoint_interval"], keep_checkpoints=1),
+        custom_hooks=[*custom_hooks, *weights_only_hooks(meta)],
+        launcher="none",
+        env_cfg=dict(cudnn_benchmark=False),
+        **resumable_runner_args(resume_from, seed, schedule["log_interval"]),
+    )
+
+
+def trained_state(net: torch.nn.Module) -> dict:
+    """The trained weights on the CPU; non-finite weights are an error (the run diverged)."""
+    state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
+    bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise FloatingPointError(f"non-finite weights after training ({bad[0]}); lower schedule.lr")
+    return state
+
+
+# Schedule keys that do not change what one step computes or only extend the run: changing them resumes it.
+RESUMABLE_SCHEDULE_KEYS = ("log_interval", "checkpoint_interval", "num_workers", "iterations", "epochs")
+
+
+def trajectory_settings(settings: dict) -> dict:
+    """A JSON copy of a trainer's settings without the schedule keys that only extend or log a run."""
+    relevant = json.loads(json.dumps(settings))
+    relevant["schedule"] = {k: v for k, v in settings["schedule"].items() if k not in RESUMABLE_SCHEDULE_KEYS}
+    return relevant

@@ -11,6 +11,7 @@ import pytest
 import torch
 import yaml
 
+from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.models.detector import build_detector
 from omnilidar.downstream.det.models.anchor_generator import generate_anchors
 from omnilidar.downstream.det.models.box_coder import ResidualCoder
@@ -20,16 +21,7 @@ from omnilidar.errors import InputError
 DOC = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
 
 
-def _merged(base: dict, overrides: dict) -> dict:
-    """Overrides merged key by key (dicts recursively), as the workflow applies CPU_SMALL."""
-    out = copy.deepcopy(base)
-    for key, value in overrides.items():
-        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
-            else copy.deepcopy(value)
-    return out
-
-
-CONFIGS = {"paper": DOC["MODEL"], "small": _merged(DOC["MODEL"], DOC["CPU_SMALL"])}
+CONFIGS = {"paper": DOC["MODEL"], "small": deep_merge(DOC["MODEL"], DOC["CPU_SMALL"])}
 KITTI_RANGE = [0.0, -40.0, -3.0, 70.4, 40.0, 1.0]
 KITTI_VOXEL = [0.05, 0.05, 0.1]
 # Tiny scene: 32 x 32 x 40 voxels, a 4 x 4 BEV map at stride 8.

@@ -12,6 +12,7 @@ import torch.nn.functional as F
 import yaml
 from det_pvrcnn_keys import pv_rcnn_kitti_keys
 
+from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.models.detector import build_detector
 from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
 from omnilidar.downstream.det.models.pointnet2_stack import StackSAModuleMSG
@@ -269,18 +270,9 @@ TINY_ANCHORS = [
 ]
 
 
-def merged(base: dict, overrides: dict) -> dict:
-    """Overrides merged key by key (dicts recursively), as the workflow applies CPU_SMALL."""
-    out = copy.deepcopy(base)
-    for key, value in overrides.items():
-        out[key] = merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
-            else copy.deepcopy(value)
-    return out
-
-
 def model_configs() -> dict:
     doc = yaml.safe_load(CONFIG.read_text())
-    return {"paper": doc["MODEL"], "small": merged(doc["MODEL"], doc["CPU_SMALL"])}
+    return {"paper": doc["MODEL"], "small": deep_merge(doc["MODEL"], doc["CPU_SMALL"])}
 
 
 def tiny_model_config() -> dict:

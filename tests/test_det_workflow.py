@@ -11,7 +11,8 @@ import sys
 import pytest
 import yaml
 
-from workflow_helpers import ROOT, copy_workflow, planned_jobs, run_with_fake_cli, snakemake, synthesized_shards
+from workflow_helpers import (ROOT, copy_workflow, plan_with_change, planned_jobs, run_with_fake_cli, snakemake,
+                              synthesized_shards)
 
 TARGET = "results/pi3det_quadruped_1pct.json"
 TEST_CONFIG = ROOT / "config" / "test.yaml"
@@ -76,16 +77,7 @@ def completed(tmp_path_factory):
 
 
 def _with_change(wd, cfg, change: dict, *targets):
-    doc = yaml.safe_load(cfg.read_text())
-    for dotted, value in change.items():
-        node = doc
-        *parents, leaf = dotted.split(".")
-        for key in parents:
-            node = node.setdefault(key, {})
-        node[leaf] = value
-    changed = wd / "changed.yaml"
-    changed.write_text(yaml.safe_dump(doc))
-    return planned_jobs(wd, *(targets or (TARGET, "results/semkitti_1pct.json")), "--configfile", str(changed))
+    return plan_with_change(wd, cfg, change, *(targets or (TARGET, "results/semkitti_1pct.json")))
 
 
 def test_nothing_reruns_without_a_change(completed):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from workflow_helpers import copy_workflow, planned_jobs, synthesized_shards
+from workflow_helpers import copy_workflow, plan_with_change, planned_jobs, synthesized_shards
 
 # Used only while rules/generator.smk is not in the checkout: the sampling rule's
 # contract (rule sample_domain, sample_shards(domain)) with the generator's settings
@@ -151,16 +151,7 @@ def completed(tmp_path_factory):
 
 
 def _with_change(wd, cfg, change: dict):
-    doc = yaml.safe_load(cfg.read_text())
-    for dotted, value in change.items():
-        node = doc
-        *parents, leaf = dotted.split(".")
-        for key in parents:
-            node = node.setdefault(key, {})
-        node[leaf] = value
-    changed = wd / "changed.yaml"
-    changed.write_text(yaml.safe_dump(doc))
-    return _jobs(wd, "results/semkitti_1pct.json", "--configfile", str(changed))
+    return plan_with_change(wd, cfg, change, "results/semkitti_1pct.json")
 
 
 def test_downstream_change_reruns_only_runs_and_evaluation(completed):

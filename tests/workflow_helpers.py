@@ -104,3 +104,20 @@ def run_with_fake_cli(workdir: Path, bin_dir: Path, *args: str) -> None:
     out = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", *args], cwd=workdir, env=env,
                          capture_output=True, text=True)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+
+
+def plan_with_change(workdir: Path, config_file: Path, change: dict, *targets: str) -> dict[str, int]:
+    """Jobs a dry run plans for ``targets`` after ``change`` ({dotted.key: value}) is applied to
+    ``config_file`` (written as changed.yaml beside it)."""
+    import yaml
+
+    doc = yaml.safe_load(config_file.read_text())
+    for dotted, value in change.items():
+        node = doc
+        *parents, leaf = dotted.split(".")
+        for key in parents:
+            node = node.setdefault(key, {})
+        node[leaf] = value
+    changed = workdir / "changed.yaml"
+    changed.write_text(yaml.safe_dump(doc))
+    return planned_jobs(workdir, *targets, "--configfile", str(changed))

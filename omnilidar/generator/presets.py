@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 
 from omnilidar.config import _load_schema, validate
+from omnilidar.dicts import deep_merge
 from omnilidar.errors import InputError
 
 DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -20,19 +21,9 @@ def ablation_presets() -> dict[str, dict]:
     return copy.deepcopy(_load_schema("generator.schema.yaml")["presets"])
 
 
-def _merge(base: dict, patch: dict) -> dict:
-    out = copy.deepcopy(base)
-    for key, value in patch.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
-
 def apply_preset(settings: dict, name: str) -> dict:
     """A validated copy of ``settings`` with preset ``name`` merged in."""
     presets = ablation_presets()
     if name not in presets:
         raise InputError(None, f"unknown generator preset {name!r} (known: {', '.join(presets)})")
-    return validate(_merge(settings, presets[name]), "generator.schema.yaml", source=f"<generator preset {name}>")
+    return validate(deep_merge(settings, presets[name]), "generator.schema.yaml", source=f"<generator preset {name}>")

@@ -19,39 +19,25 @@ from pathlib import Path
 
 import torch
 
+from omnilidar.checkpoints import load_tagged_payload, load_weights_only, save_tagged_payload
 from omnilidar.errors import InputError
-from omnilidar.io.atomic import atomic_path
 
 FORMAT = "omnilidar-detector/1"
 
 
 def save_payload(payload: dict, out: str | Path) -> None:
-    with atomic_path(out) as tmp:
-        torch.save({"format": FORMAT, **payload}, tmp)
-
-
-def _safe_load(path: Path, what: str):
-    if not path.is_file():
-        raise InputError(path, f"{what} not found")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # corrupt, truncated or unsafe pickles
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise InputError(path, f"not a readable {what} (loaded with weights_only=True): {first}") from None
+    save_tagged_payload(payload, out, FORMAT)
 
 
 def load_payload(path: str | Path) -> dict:
-    path = Path(path)
-    payload = _safe_load(path, "detector checkpoint")
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise InputError(path, f"not an omnilidar detector checkpoint ({FORMAT})")
-    return payload
+    """Load a payload written by :func:`save_payload` (weights-only)."""
+    return load_tagged_payload(path, FORMAT, "detector checkpoint")
 
 
 def load_openpcdet_state(path: str | Path) -> dict[str, torch.Tensor]:
     """The ``model_state`` of a user's OpenPCDet checkpoint (or a bare state dict), weights-only."""
     path = Path(path)
-    obj = _safe_load(path, "OpenPCDet checkpoint")
+    obj = load_weights_only(path, "OpenPCDet checkpoint")
     if isinstance(obj, dict) and isinstance(obj.get("model_state"), dict):
         obj = obj["model_state"]
     if not isinstance(obj, dict) or not obj or not all(isinstance(v, torch.Tensor) for v in obj.values()):

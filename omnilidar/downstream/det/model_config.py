@@ -12,25 +12,15 @@ replace ``DENSE_HEAD.ANCHOR_GENERATOR_CONFIG``, so one file serves Drone
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 
 import yaml
 
+from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.data_config import PlatformConfig, anchor_generator_config
 from omnilidar.errors import InputError
 
 DETECTORS = ("voxel_rcnn", "pv_rcnn")
-
-
-def merge(base: dict, overrides: dict) -> dict:
-    out = copy.deepcopy(base)
-    for key, value in overrides.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
 
 
 def read_model_yaml(path: str | Path, section: str = "MODEL") -> dict:
@@ -64,7 +54,7 @@ def model_config(settings: dict, detector: str, cfg: PlatformConfig, path: str |
     overrides = spec.get("overrides") or {}
     if isinstance(overrides, str):
         overrides = read_model_yaml(path, overrides)
-    model = merge(read_model_yaml(path), overrides)
+    model = deep_merge(read_model_yaml(path), overrides)
     model.setdefault("DENSE_HEAD", {})["ANCHOR_GENERATOR_CONFIG"] = anchor_generator_config(cfg)
     return model
 

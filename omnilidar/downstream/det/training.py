@@ -17,38 +17,25 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker,
-                                   resumable_runner_args, resume_point, weights_only_hooks)
+from omnilidar.checkpoints import (checkpoint_iteration, iteration_runner, job_provenance, relative_marker,
+                                   resume_point, trained_state, trajectory_settings)
 from omnilidar.devices import resolve_device
 from omnilidar.downstream.det.checkpoints import save_payload
 from omnilidar.downstream.det.data_config import PlatformConfig
 from omnilidar.downstream.det.dataset import DetCollate, DetScanDataset, batch_to, count_boxes
 from omnilidar.downstream.det.model_config import build
-from omnilidar.downstream.seg.dataset import MixedBatchSampler, epoch_length
+from omnilidar.downstream.seg.dataset import MixedBatchSampler, total_iterations
 from omnilidar.errors import InputError
-
-# Keys that do not change what one step computes or only extend the run: changing them resumes it.
-_RESUMABLE = ("log_interval", "checkpoint_interval", "num_workers", "iterations", "epochs")
-
-
-def total_iterations(schedule: dict, num_real: int, num_generated: int, mixing: dict) -> int:
-    if schedule.get("iterations"):
-        return int(schedule["iterations"])
-    per_epoch = math.ceil(epoch_length(num_real, num_generated, mixing) / schedule["batch_size"])
-    return int(schedule["epochs"]) * max(1, per_epoch)
-
 
 def trajectory(settings: dict, detector: str, model: dict, real: list[dict], generated: list[dict]) -> dict:
     """What determines the training trajectory besides seed, code and input contents."""
-    relevant = json.loads(json.dumps(settings))
-    relevant["schedule"] = {k: v for k, v in settings["schedule"].items() if k not in _RESUMABLE}
+    relevant = trajectory_settings(settings)
     frames = [[r["points"], r["boxes"], r["names"]] for r in real + generated]
     return {"training": relevant, "detector": detector, "model": model, "num_real": len(real),
             "num_generated": len(generated),
@@ -104,7 +91,6 @@ def train_detector(settings: dict, detector: str, model_cfg: dict, cfg: Platform
     ``real`` / ``generated``: frame records (:mod:`.dataset`). Returns a summary dict.
     """
     from mmengine.optim import OptimWrapper
-    from mmengine.runner import Runner
 
     from omnilidar.downstream.det.optim import adam_onecycle
 
@@ -136,18 +122,8 @@ def train_detector(settings: dict, detector: str, model_cfg: dict, cfg: Platform
     optimizer, step_schedule = adam_onecycle(net, sched, iterations)
     optim_wrapper = OptimWrapper(optimizer=optimizer, clip_grad=dict(max_norm=float(sched["grad_norm_clip"])))
     meta = {"detector": detector, "seed": int(seed), "provenance": provenance}
-    runner = Runner(
-        model=model,
-        work_dir=str(run_dir),
-        train_dataloader=loader,
-        train_cfg=dict(by_epoch=False, max_iters=iterations, val_interval=iterations + 1),
-        optim_wrapper=optim_wrapper,
-        default_hooks=iteration_hooks(sched["log_interval"], sched["checkpoint_interval"], keep_checkpoints=1),
-        custom_hooks=[schedule_hook(step_schedule), *weights_only_hooks(meta)],
-        launcher="none",
-        env_cfg=dict(cudnn_benchmark=False),
-        **resumable_runner_args(resume_from, seed, sched["log_interval"]),
-    )
+    runner = iteration_runner(model, run_dir, loader, iterations, optim_wrapper, sched, [schedule_hook(step_schedule)], meta,
+                              resume_from, seed)
     params = sum(p.numel() for p in net.parameters())
     runner.logger.info(
         f"omnilidar detector: {detector} ({params / 1e6:.2f} M parameters, {device}), platform {cfg.name} "
@@ -158,10 +134,7 @@ def train_detector(settings: dict, detector: str, model_cfg: dict, cfg: Platform
     runner.train()
     relative_marker(run_dir)
 
-    state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
-    bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
-    if bad:
-        raise FloatingPointError(f"non-finite weights after training ({bad[0]}); lower schedule.lr")
+    state = trained_state(net)
     summary = {"iterations": int(runner.iter), "parameters": int(params), "num_real": len(real),
                "num_generated": len(generated), "mixing": mixing, "device": str(device),
                "seconds": round(time.time() - started, 1), "resumed_from": skip}

@@ -24,35 +24,20 @@ from pathlib import Path
 
 import torch
 
+from omnilidar.checkpoints import load_tagged_payload, load_weights_only, save_tagged_payload
 from omnilidar.errors import InputError
-from omnilidar.io.atomic import atomic_path
 
 FORMAT = "omnilidar-segmentor/1"
 
 
 def save_payload(payload: dict, out: str | Path) -> None:
     """Write a final segmentor payload atomically."""
-    with atomic_path(out) as tmp:
-        torch.save({"format": FORMAT, **payload}, tmp)
-
-
-def _safe_load(path: Path, what: str):
-    if not path.is_file():
-        raise InputError(path, f"{what} not found")
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # corrupt, truncated or unsafe pickles
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise InputError(path, f"not a readable {what} (loaded with weights_only=True): {first}") from None
+    save_tagged_payload(payload, out, FORMAT)
 
 
 def load_payload(path: str | Path) -> dict:
     """Load a payload written by :func:`save_payload` (weights-only)."""
-    path = Path(path)
-    payload = _safe_load(path, "segmentor checkpoint")
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise InputError(path, f"not an omnilidar segmentor checkpoint ({FORMAT})")
-    return payload
+    return load_tagged_payload(path, FORMAT, "segmentor checkpoint")
 
 
 def load_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
@@ -61,7 +46,7 @@ def load_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     Accepts our payload, ``{"state_dict": {...}}`` or a bare ``{name: tensor}`` dict.
     """
     path = Path(path)
-    obj = _safe_load(path, "checkpoint")
+    obj = load_weights_only(path, "checkpoint")
     if isinstance(obj, dict) and isinstance(obj.get("state_dict"), dict):
         obj = obj["state_dict"]
     if not isinstance(obj, dict) or not obj or not all(isinstance(v, torch.Tensor) for v in obj.values()):

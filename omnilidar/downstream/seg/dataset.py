@@ -212,6 +212,14 @@ def epoch_length(num_real: int, num_generated: int, mixing: dict) -> int:
     return len(epoch_plan(num_real, num_generated, mixing, 0, 0))
 
 
+def total_iterations(schedule: dict, num_real: int, num_generated: int, mixing: dict) -> int:
+    """Iterations of a run: ``schedule.iterations`` or ``epochs`` over the mixed set."""
+    if schedule.get("iterations"):
+        return int(schedule["iterations"])
+    per_epoch = math.ceil(epoch_length(num_real, num_generated, mixing) / schedule["batch_size"])
+    return int(schedule["epochs"]) * max(1, per_epoch)
+
+
 class MixedBatchSampler(torch.utils.data.Sampler):
     """Endless batches of ``(draw, index)`` keys over the epochs of :func:`epoch_plan`.
 

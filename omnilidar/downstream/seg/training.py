@@ -34,32 +34,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker,
-                                   resumable_runner_args, resume_point, weights_only_hooks)
+from omnilidar.checkpoints import (checkpoint_iteration, iteration_runner, job_provenance, relative_marker,
+                                   resume_point, trained_state, trajectory_settings)
 from omnilidar.devices import resolve_device
 from omnilidar.downstream.seg.checkpoints import save_payload
-from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, epoch_length
+from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, total_iterations
 from omnilidar.downstream.seg.label_spaces import LabelSpace
 from omnilidar.downstream.seg.models import build_segmentor, model_spec
 from omnilidar.downstream.seg.voxelize import IGNORE_INDEX, SegBatch
 from omnilidar.errors import InputError
 
-# Keys that do not change what one step computes or only extend the run: changing them resumes it.
-_RESUMABLE = ("log_interval", "checkpoint_interval", "num_workers", "iterations", "epochs")
-
-
-def total_iterations(schedule: dict, num_real: int, num_generated: int, mixing: dict) -> int:
-    """Iterations of a run: ``schedule.iterations`` or ``epochs`` over the mixed set."""
-    if schedule.get("iterations"):
-        return int(schedule["iterations"])
-    per_epoch = math.ceil(epoch_length(num_real, num_generated, mixing) / schedule["batch_size"])
-    return int(schedule["epochs"]) * max(1, per_epoch)
-
-
 def trajectory(settings: dict, backbone: str, real: list[dict], generated: list[dict]) -> dict:
     """What determines the training trajectory besides seed, code and input contents."""
-    relevant = json.loads(json.dumps(settings))
-    relevant["schedule"] = {k: v for k, v in settings["schedule"].items() if k not in _RESUMABLE}
+    relevant = trajectory_settings(settings)
     scans = [[r.get("points"), r.get("labels")] for r in real + generated]
     return {"training": relevant, "backbone": backbone, "num_real": len(real), "num_generated": len(generated),
             "scans": hashlib.sha256(json.dumps(scans, default=str).encode()).hexdigest()}
@@ -148,7 +135,6 @@ def train_segmentor(
     [paths]}``) are the files the records come from; their content digests and the
     code hash of ``command`` key the resumable state in ``work_dir``. Returns a summary dict.
     """
-    from mmengine.runner import Runner
 
     started = time.time()
     if not real and not generated:
@@ -182,18 +168,8 @@ def train_segmentor(
     if device.type == "cuda" and sched["amp"]:
         optim_wrapper = dict(type="AmpOptimWrapper", dtype="float16", optimizer=optimizer)
     meta = {"model": spec, "label_space": space.name, "seed": int(seed), "provenance": provenance}
-    runner = Runner(
-        model=model,
-        work_dir=str(run_dir),
-        train_dataloader=loader,
-        train_cfg=dict(by_epoch=False, max_iters=iterations, val_interval=iterations + 1),
-        optim_wrapper=optim_wrapper,
-        default_hooks=iteration_hooks(sched["log_interval"], sched["checkpoint_interval"], keep_checkpoints=1),
-        custom_hooks=[schedule_hook(iterations, sched), *weights_only_hooks(meta)],
-        launcher="none",
-        env_cfg=dict(cudnn_benchmark=False),
-        **resumable_runner_args(resume_from, seed, sched["log_interval"]),
-    )
+    runner = iteration_runner(model, run_dir, loader, iterations, optim_wrapper, sched, [schedule_hook(iterations, sched)], meta,
+                              resume_from, seed)
     params = sum(p.numel() for p in net.parameters())
     runner.logger.info(
         f"omnilidar segmentor: {backbone} {spec['width']} depth {spec['depth']} ({params / 1e6:.2f} M parameters, "
@@ -204,10 +180,7 @@ def train_segmentor(
     runner.train()
     relative_marker(run_dir)
 
-    state = {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}
-    bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
-    if bad:
-        raise FloatingPointError(f"non-finite weights after training ({bad[0]}); lower schedule.lr")
+    state = trained_state(net)
     summary = {"iterations": int(runner.iter), "parameters": int(params), "num_real": len(real),
                "num_generated": len(generated), "mixing": mixing, "backend": net.backend,
                "device": str(device), "seconds": round(time.time() - started, 1), "work_dir": str(run_dir),
