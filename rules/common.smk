@@ -420,6 +420,60 @@ def curve_evaluations():
             for r in runs for k in range(curve["seeds"])]
 
 
+DECOMPOSITION = EXPERIMENTS["gda_decomposition"]
+DECOMPOSITION_SCANS = min(DECOMPOSITION["scans"], config["generator"]["sampling"]["scans_per_domain"])
+# Row of the decomposition study -> its run's wildcard (files ..._study-<row><N>_seed<k>.pt).
+DECOMPOSITION_RUNS = {"supervised_only": "real", "real_truth": "truth", "real_pseudo": "pseudo",
+                      "generated": "gda", "lasermix": "lasermix"}
+# Study run wildcard -> the train-segmentor arguments it adds.
+STUDY_FLAGS = {
+    "real": "",
+    "truth": "--pool {input.pool}",
+    "pseudo": "--pool {input.pool} --pool-labels {input.labels}",
+    "lasermix": "--pool {input.pool} --pool-labels {input.labels} --lasermix",
+    "gda": "--samples {input.samples} --pseudo-labels {input.pseudo} --domains {domain} --max-generated {scans}",
+}
+
+
+def study_settings():
+    """The downstream training keys with the study's own overrides (experiments.gda_decomposition.training)."""
+    from omnilidar.dicts import deep_merge
+
+    base = {k: DOWNSTREAM[k] for k in (*TRAINING_KEYS, "mixing")}
+    return json.dumps(deep_merge(base, DECOMPOSITION["training"]), sort_keys=True)
+
+
+def pool_file(pct, scans):
+    """N real train scans outside the pct % subset (make-subset --exclude)."""
+    return f"{DATA}/subsets/semantickitti_{pct}pct_pool{scans}.json"
+
+
+def pool_labels_dir(pct, scans):
+    """The labeler's labels of that pool (pseudo-label --pool)."""
+    return f"{PSEUDO}/pool/semantickitti_{pct}pct_pool{scans}"
+
+
+def study_run_inputs(w):
+    """Inputs of a study run (train_study): the subset, and what its row adds."""
+    inputs = {"subset": f"{DATA}/subsets/semantickitti_{w.pct}pct.json"}
+    if w.row in ("truth", "pseudo", "lasermix"):
+        inputs["pool"] = pool_file(w.pct, w.scans)
+    if w.row in ("pseudo", "lasermix"):
+        inputs["labels"] = pool_labels_dir(w.pct, w.scans)
+    if w.row == "gda":
+        inputs["samples"] = curve_shards(DECOMPOSITION["domain"], w.scans)
+        inputs["pseudo"] = curve_pseudo_labels(DECOMPOSITION["domain"], w.scans)
+    return inputs
+
+
+def decomposition_evaluations():
+    """Val evaluations of every row, backbone and seed of the decomposition study."""
+    d = DECOMPOSITION
+    return [run_evaluation("semantickitti", b, d["percent"],
+                           f"study-{row}{DECOMPOSITION_SCANS}_seed{config['seed'] + k}", "val")
+            for b in d["backbones"] for row in DECOMPOSITION_RUNS.values() for k in range(d["seeds"])]
+
+
 # Detection helpers (rules/detection.smk), after what they read.
 
 DET = f"{DATA}/detection"

@@ -486,6 +486,122 @@ rule gda_curve:
         )
 
 
+rule make_pool:
+    """The decomposition study's pool: N real train scans outside a label subset, evenly spread."""
+    input:
+        index=f"{DATA}/index/semantickitti.json",
+        subset=f"{SUBSETS}/semantickitti_{{pct}}pct.json",
+    output:
+        pool_file("{pct}", "{scans}"),
+    wildcard_constraints:
+        pct=r"\d+",
+        scans=r"[1-9]\d*",
+    params:
+        code=code("make-subset"),
+    log:
+        "logs/downstream/subset_semantickitti_{pct}pct_pool{scans}.log",
+    conda:
+        ENV
+    resources:
+        **job_resources("make_subset"),
+    shell:
+        "omnilidar make-subset --index {input.index} --exclude {input.subset} --count {wildcards.scans} "
+        "--out {output} > {log} 2>&1"
+
+
+rule pseudo_label_pool:
+    """The labeler's labels of a pool's real scans, with their accuracy against the true labels."""
+    input:
+        labeler=LABELER,
+        pool=pool_file("{pct}", "{scans}"),
+    output:
+        directory(pool_labels_dir("{pct}", "{scans}")),
+    wildcard_constraints:
+        pct=r"\d+",
+        scans=r"[1-9]\d*",
+    params:
+        settings=settings("downstream", "labeler"),
+        code=code("pseudo-label"),
+    log:
+        "logs/downstream/pseudo_labels/pool_{pct}pct_{scans}.log",
+    conda:
+        ENV
+    threads: 1
+    resources:
+        **job_resources("pseudo_label"),
+    shell:
+        "omnilidar pseudo-label --labeler {input.labeler} --pool {input.pool} "
+        "--settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
+
+
+rule train_study:
+    """One run of the decomposition study, on its own schedule (experiments.gda_decomposition.training
+    over the downstream training keys): the real subset plus N scans of one row - nothing (real),
+    pool scans with true labels (truth) or the labeler's (pseudo), LaserMix-ed pool scans (lasermix),
+    or the first N generated scans of the domain (gda)."""
+    input:
+        unpack(study_run_inputs),
+    output:
+        f"{SEG}/semantickitti/{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.pt",
+    wildcard_constraints:
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+        row="|".join(STUDY_FLAGS),
+        scans=r"[1-9]\d*",
+        seed=r"\d+",
+    params:
+        settings=study_settings(),
+        seed=lambda w: int(w.seed),
+        work_dir=lambda w, output: job_work_dir(output[0]),
+        flags=lambda w, input: STUDY_FLAGS[w.row].format(input=input, scans=w.scans, domain=DECOMPOSITION["domain"]),
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        **job_resources("train_gda"),
+    shell:
+        "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
+        "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
+        "--threads {threads} --out {output} {params.flags} > {log} 2>&1"
+
+
+rule gda_decomposition:
+    """Where GDA's effect is won or lost: supervised-only, + real scans with true labels, + the same
+    with the labeler's labels, + generated scans, + LaserMix, per backbone over several seeds."""
+    input:
+        evaluations=decomposition_evaluations(),
+        pool_labels=pool_labels_dir(DECOMPOSITION["percent"], DECOMPOSITION_SCANS),
+        labeler=LABELER_VAL,
+    output:
+        json="results/gda_decomposition.json",
+        table="results/tables/gda_decomposition.html",
+        figure="results/figures/gda_decomposition.png",
+    params:
+        settings=settings("downstream", drop=("det",)),
+        seed=config["seed"],
+        data_source=data_source("semantickitti"),
+        code=result_code("gda-decomposition"),
+    log:
+        "logs/downstream/gda_decomposition.log",
+    benchmark:
+        "benchmarks/out/downstream/gda_decomposition.tsv"
+    conda:
+        ENV
+    resources:
+        **job_resources("gda_result"),
+    shell:
+        with_table(
+            "omnilidar gda-decomposition --evaluations {input.evaluations} --pool-labels {input.pool_labels} "
+            "--labeler-evaluation {input.labeler} --settings {params.settings:q} --seed {params.seed} "
+            "--data-source {params.data_source:q} --out {output.json} --figure {output.figure} > {log} 2>&1"
+        )
+
+
 rule segmentation:
     """Every segmentation experiment target."""
     input:
@@ -494,3 +610,4 @@ rule segmentation:
         expand("results/nusc_beam32_{pct}pct.json", pct=EXPERIMENTS["nusc_beam32"]["percents"]),
         "results/semanticstf.json",
         "results/gda_curve.json",
+        "results/gda_decomposition.json",

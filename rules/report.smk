@@ -14,6 +14,7 @@ REPORT_SECTIONS = (
     (r"effects_tradeoff", "Domains", "effects_tradeoff.rst"),
     (r"semkitti_\d+pct|semkittic|semanticstf|nusc_beam32_\d+pct", "Segmentation", "segmentation.rst"),
     (r"gda_curve", "Accuracy vs time", "gda_curve.rst"),
+    (r"gda_decomposition", "Segmentation", "gda_decomposition.rst"),
     (r"tradeoff", "Accuracy vs time", "tradeoff.rst"),
     (r"generation_quality", "Generation", "generation_quality.rst"),
     (r"ablation", "Generation", "ablation.rst"),

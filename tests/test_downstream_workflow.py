@@ -180,3 +180,30 @@ def test_generator_change_spares_supervised_runs_and_labeler(completed):
     assert {"sample_domain", "pseudo_label", "train_gda", "semkitti_result"} <= set(jobs)
     assert "train_supervised" not in jobs and "train_labeler" not in jobs and "evaluate_labeler" not in jobs
     assert jobs["evaluate_segmentor"] == 2  # the GDA runs' evaluations only
+
+
+def test_decomposition_plans_every_row_backbone_and_seed(workdir):
+    """results/gda_decomposition.json: 5 rows x 2 backbones x 3 seeds on the study's own regime, the
+    pool made once and labelled once; the generated row takes the first N sampled scans."""
+    from workflow_helpers import snakemake
+
+    jobs = _jobs(workdir, "results/gda_decomposition.json")
+    assert jobs["train_study"] == 5 * 2 * 3 and jobs["evaluate_segmentor"] == 30
+    assert jobs["evaluate_labeler"] == jobs["make_pool"] == jobs["pseudo_label_pool"] == jobs["gda_decomposition"] == 1
+    assert "train_supervised" not in jobs and "train_gda" not in jobs  # the quick-start runs are not the study's
+    (workdir / "study.yaml").write_text(
+        "downstream: {experiments: {gda_decomposition: {training: {schedule: {iterations: 123}}}}}\n")
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
+                    "--configfile", "config/config.yaml", "study.yaml").stdout
+    runs = [line for line in out.splitlines() if "omnilidar train-segmentor" in line]
+    assert len(runs) == 30 and all('"iterations": 123' in line for line in runs)
+    lasermix = [line for line in runs if "--lasermix" in line]
+    assert len(lasermix) == 6 and all("--pool-labels data/pseudo_labels/pool/semantickitti_1pct_pool16" in line
+                                      for line in lasermix)
+    assert sum("--max-generated 16" in line for line in runs) == 6
+    assert "spvcnn_1pct_study-truth16_seed2.pt" in out and "minkunet_1pct_study-real16_seed0.pt" in out
+    # The study's regime leaves the quick-start target's runs alone.
+    headline = snakemake(workdir, "--dry-run", "--printshellcmds", "results/semkitti_1pct.json",
+                         "--configfile", "config/config.yaml", "study.yaml").stdout
+    trains = [line for line in headline.splitlines() if "omnilidar train-segmentor" in line]
+    assert len(trains) == 4 and not any('"iterations": 123' in line for line in trains)

@@ -8,13 +8,24 @@ HELP = "write a label subset of a dataset split: one scan out of every 100/perce
 def add_arguments(parser) -> None:
     parser.add_argument("--index", required=True, help="dataset index (data/index/<dataset>.json)")
     parser.add_argument("--split", default="train", help="split to subsample (default train)")
-    parser.add_argument("--percent", type=float, required=True, help="percent of the split to keep (1 = every 100th)")
+    parser.add_argument("--percent", type=float, help="percent of the split to keep (1 = every 100th)")
+    parser.add_argument("--exclude", metavar="SUBSET",
+                        help="write a pool instead: --count scans of the split outside this subset, evenly spread")
+    parser.add_argument("--count", type=int, help="scans in the pool (with --exclude)")
     parser.add_argument("--out", required=True, help="subset list (JSON)")
 
 
 def run(args) -> int:
-    from omnilidar.downstream.seg.subsets import make_subset, write_subset
+    from omnilidar.downstream.seg.subsets import make_pool, make_subset, read_subset, write_subset
+    from omnilidar.errors import InputError
 
+    if (args.exclude is None) == (args.percent is None) or (args.exclude is None) != (args.count is None):
+        raise InputError(None, "give either --percent, or --exclude SUBSET with --count N")
+    if args.exclude:
+        pool = make_pool(args.index, args.split, read_subset(args.exclude), args.count, args.exclude)
+        write_subset(pool, args.out)
+        print(f"{pool['dataset']} {args.split}: pool of {pool['num_scans']} scans outside {args.exclude} -> {args.out}")
+        return 0
     subset = make_subset(args.index, args.split, args.percent / 100.0)
     write_subset(subset, args.out)
     print(f"{subset['dataset']} {args.split}: {subset['num_scans']} of {subset['source_scans']} scans "

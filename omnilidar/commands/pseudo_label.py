@@ -11,7 +11,9 @@ DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omn
 def add_arguments(parser) -> None:
     settings_arg(parser)
     parser.add_argument("--labeler", required=True, help="labeler checkpoint from train-labeler")
-    parser.add_argument("--samples", required=True, help="sample shard directory (velodyne/*.bin)")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--samples", help="sample shard directory (velodyne/*.bin)")
+    source.add_argument("--pool", help="a pool of real scans (make-subset --exclude); records accuracy against truth")
     parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
     parser.add_argument("--out", required=True, help="pseudo-label shard directory (appears only when complete)")
 
@@ -21,13 +23,16 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.downstream.seg.evaluate import load_segmentor
-    from omnilidar.downstream.seg.pseudo_label import pseudo_label_shard
+    from omnilidar.downstream.seg.pseudo_label import pseudo_label_pool, pseudo_label_shard
     from omnilidar.downstream.seg.training import set_threads
 
     set_threads(args.threads)
     section = validate({"labeler": dict(args.settings)}, "downstream.schema.yaml", source="--settings")["labeler"]
     with torch.no_grad():  # a context, not a global switch: callers may run in-process
         model, payload = load_segmentor(args.labeler, section["backend"], section["device"])
-        side = pseudo_label_shard(model, payload, args.samples, args.out, section["batch_size"])
+        label = pseudo_label_pool if args.pool else pseudo_label_shard
+        side = label(model, payload, args.pool or args.samples, args.out, section["batch_size"])
     print(f"{len(side['scans'])} scans pseudo-labelled in {side['seconds']} s -> {args.out}")
+    if side["accuracy_against_truth"]:
+        print(f"pseudo-labels against the true labels: mIoU {100 * side['accuracy_against_truth']['miou']:.2f}")
     return 0

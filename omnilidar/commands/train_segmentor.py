@@ -19,6 +19,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--max-generated", type=int, default=None, metavar="N",
                         help="use only the first N generated scans: shards in the order given, scans in name "
                              "order (empty scans count but are not trained on); default all")
+    parser.add_argument("--pool", help="further real scans (make-subset --exclude) in place of generated ones: "
+                                       "with their true labels, or with --pool-labels")
+    parser.add_argument("--pool-labels", help="the labeler's labels of the pool (pseudo-label --pool)")
+    parser.add_argument("--lasermix", action="store_true",
+                        help="LaserMix each pool scan (with --pool-labels) with a real labelled scan")
     parser.add_argument("--work-dir", default="work/segmentation", help="resumable training state (undeclared)")
     parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
     parser.add_argument("--out", required=True, help="segmentor checkpoint (weights-only loadable)")
@@ -28,7 +33,7 @@ def run(args) -> int:
     from omnilidar.config import validate
     from omnilidar.downstream.seg.dataset import records_from_entries
     from omnilidar.downstream.seg.label_spaces import get_label_space
-    from omnilidar.downstream.seg.pseudo_label import generated_records
+    from omnilidar.downstream.seg.pseudo_label import generated_records, pool_records
     from omnilidar.downstream.seg.subsets import read_subset
     from omnilidar.downstream.seg.training import set_threads, train_segmentor
     from omnilidar.errors import InputError
@@ -40,13 +45,26 @@ def run(args) -> int:
     real = records_from_entries(subset["entries"], dataset)
     if args.max_generated is not None and not args.samples:
         raise InputError(None, "--max-generated needs generated --samples")
-    generated, empty = generated_records(args.samples, args.pseudo_labels, limit=args.max_generated)
-    if args.samples and not generated:
-        raise InputError(args.samples[0], "the generated scans used hold no non-empty scan")
-    if empty:
-        print(f"note: {empty} generated scans have no points and are not trained on", flush=True)
+    if args.pool and args.samples:
+        raise InputError(args.pool, "give --pool or generated --samples, not both")
+    if (args.pool_labels or args.lasermix) and not args.pool:
+        raise InputError(None, "--pool-labels and --lasermix need --pool")
+    if args.lasermix and not args.pool_labels:
+        raise InputError(args.pool, "--lasermix mixes in the pool unlabelled: give --pool-labels (the labeler's)")
+    if args.pool:
+        generated, empty = pool_records(args.pool, args.pool_labels), 0
+        if read_subset(args.pool)["dataset"] != dataset:
+            raise InputError(args.pool, f"pool and subset {args.subset} come from different datasets")
+        role = "lasermix" if args.lasermix else "real_pseudo" if args.pool_labels else "real_truth"
+    else:
+        generated, empty = generated_records(args.samples, args.pseudo_labels, limit=args.max_generated)
+        if args.samples and not generated:
+            raise InputError(args.samples[0], "the generated scans used hold no non-empty scan")
+        if empty:
+            print(f"note: {empty} generated scans have no points and are not trained on", flush=True)
+        role = "gda" if args.samples else "supervised_only"
     info = {
-        "role": "gda" if args.samples else "supervised_only",
+        "role": role, "pool": args.pool, "pool_labels": args.pool_labels,
         "dataset": dataset, "percent": 100.0 * subset["fraction"], "subset": args.subset,
         "subset_scans": subset["num_scans"], "domains": list(args.domains), "empty_generated": empty,
         # The generated scans taken (empty ones included); train.num_generated counts those trained on.
@@ -58,8 +76,11 @@ def run(args) -> int:
     training = {k: settings[k] for k in ("backend", "device", "voxel_size", "max_voxels", "max_points", "models", "schedule",
                                          "augmentation", "mixing")}
     inputs = {"subset": args.subset, "samples": list(args.samples), "pseudo_labels": list(args.pseudo_labels)}
+    inputs |= {k: v for k, v in (("pool", args.pool), ("pool_labels", args.pool_labels)) if v}
     summary = train_segmentor(training, args.backbone, real, generated, get_label_space(dataset), args.out,
-                              args.work_dir, args.seed, info=info, inputs=inputs)
-    print(f"{args.backbone} {info['role']}: {summary['num_real']} real + {summary['num_generated']} generated scans, "
+                              args.work_dir, args.seed, info=info, inputs=inputs,
+                              lasermix=args.lasermix)
+    print(f"{args.backbone} {info['role']}: {summary['num_real']} real + {summary['num_generated']} "
+          f"{'pool' if args.pool else 'generated'} scans, "
           f"{summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")
     return 0

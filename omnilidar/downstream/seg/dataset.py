@@ -35,6 +35,7 @@ from omnilidar.downstream.seg.label_spaces import (
     nuscenes_train_ids,
     semantickitti_to_nuscenes,
 )
+from omnilidar.downstream.seg.lasermix import laser_mix
 from omnilidar.downstream.seg.voxelize import SegBatch, collate
 from omnilidar.errors import InputError
 from omnilidar.io import nuscenes, semantickitti
@@ -44,7 +45,8 @@ _BYTES_PER_POINT = {"semantickitti": 16, "nuscenes": 20}
 
 
 def draw_rng(seed: int, draw: int, purpose: int = 0) -> np.random.Generator:
-    """The generator of one training draw: purpose 0 augmentation, 1 voxel cap, 2 point cap."""
+    """The generator of one training draw: purpose 0 augmentation, 1 voxel cap, 2 point cap,
+    3 LaserMix partner and bands."""
     return np.random.default_rng([int(seed), 0x5E6, int(purpose), int(draw)])
 
 
@@ -129,16 +131,19 @@ class SegScanDataset(torch.utils.data.Dataset):
 
     ``max_points`` caps the points of a training draw (random subset, purpose 2
     of :func:`draw_rng`); evaluation items are never capped. With ``augmentation`` (dict with ``rotation`` and ``scale``) a ``(draw, i)``
-    item is augmented with :func:`draw_rng` ``(seed, draw)``.
+    item is augmented with :func:`draw_rng` ``(seed, draw)``. With ``lasermix_from`` = R, a
+    training draw of record i >= R is LaserMix-ed (:mod:`.lasermix`) with one of the records
+    0..R-1, drawn with purpose 3, before the point cap and augmentation.
     """
 
     def __init__(self, records: list[dict], space: LabelSpace, augmentation: dict | None = None, seed: int = 0,
-                 max_points: int | None = None):
+                 max_points: int | None = None, lasermix_from: int | None = None):
         self.records = list(records)
         self.space = space
         self.augmentation = augmentation
         self.seed = int(seed)
         self.max_points = max_points
+        self.lasermix_from = lasermix_from
 
     def __len__(self) -> int:
         return len(self.records)
@@ -147,6 +152,10 @@ class SegScanDataset(torch.utils.data.Dataset):
         draw, i = key if isinstance(key, tuple) else (None, key)
         rec = self.records[i]
         points, labels = read_record(rec, self.space)
+        if self.lasermix_from and draw is not None and i >= self.lasermix_from:
+            rng = draw_rng(self.seed, draw, purpose=3)
+            partner = read_record(self.records[int(rng.integers(self.lasermix_from))], self.space)
+            points, labels = laser_mix((points, labels), partner, rng)
         if self.max_points and draw is not None and len(points) > self.max_points:
             # Training-time point cap (CPU budget): a random subset, in file order.
             keep = np.sort(draw_rng(self.seed, draw, purpose=2).choice(len(points), self.max_points, replace=False))

@@ -1,4 +1,5 @@
-"""Pseudo-labels for generated scans, and pairing them with their samples.
+"""Pseudo-labels for generated scans (and for real scans of a pool, to measure what
+pseudo-labelling costs), and pairing them with their scans.
 
 One pseudo-label shard per sample shard::
 
@@ -26,6 +27,7 @@ from omnilidar.downstream.seg.label_spaces import get_label_space
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
 from omnilidar.io.atomic import atomic_path
+from omnilidar.metrics.segmentation import ConfusionMatrix
 
 SIDECAR = "sidecar.json"
 
@@ -45,36 +47,89 @@ def sample_scans(sample_dir: str | Path) -> list[Path]:
 def pseudo_label_shard(model: torch.nn.Module, payload: dict, sample_dir: str | Path, out: str | Path,
                        batch_size: int = 2) -> dict:
     """Label every scan of a sample shard; write the pseudo-label shard ``out`` atomically."""
+    scans = [(p.stem, p, None) for p in sample_scans(sample_dir)]
+    return _pseudo_label(model, payload, scans, out, batch_size, {"sample_shard": str(sample_dir)})
+
+
+@torch.no_grad()
+def pseudo_label_pool(model: torch.nn.Module, payload: dict, pool_path: str | Path, out: str | Path,
+                      batch_size: int = 2) -> dict:
+    """Label the real scans of a pool (``make-subset --exclude``): ``labels/%06d.label`` for its k-th
+    scan, and, where the scans have true labels, the pseudo-labels' accuracy against them."""
+    from omnilidar.downstream.seg.subsets import read_subset
+
+    pool = read_subset(pool_path)
+    if pool["dataset"] != "semantickitti":
+        raise InputError(pool_path, f"the labeler labels SemanticKITTI scans, not {pool['dataset']}")
+    scans = [(f"{k:06d}", Path(e["points"]), e.get("labels")) for k, e in enumerate(pool["entries"])]
+    return _pseudo_label(model, payload, scans, out, batch_size, {"pool": str(pool_path)})
+
+
+def _pseudo_label(model, payload: dict, scans: list[tuple], out: str | Path, batch_size: int, source: dict) -> dict:
+    """Write ``labels/<name>.label`` for each ``(name, scan path, true label path or None)`` and the sidecar."""
     space = get_label_space(payload["label_space"])
-    scans = sample_scans(sample_dir)
     started = time.time()
     records = []
     hist = np.zeros(space.num_ids, np.int64)
+    truth = ConfusionMatrix(space.num_ids) if any(t for _, _, t in scans) else None
     with atomic_path(out) as tmp:
         (tmp / "labels").mkdir(parents=True)
         for start in range(0, len(scans), batch_size):
-            paths = scans[start:start + batch_size]
-            clouds = [semantickitti.read_points(p) for p in paths]
+            chunk = scans[start:start + batch_size]
+            clouds = [semantickitti.read_points(path) for _, path, _ in chunk]
             nonempty = [i for i, c in enumerate(clouds) if len(c)]
             preds = dict(zip(nonempty, predict_points(
                 model, [clouds[i] for i in nonempty], payload["voxel_size"], space.num_ids,
-                [paths[i] for i in nonempty]))) if nonempty else {}
-            for i, path in enumerate(paths):
+                [chunk[i][1] for i in nonempty]))) if nonempty else {}
+            for i, (name, path, truth_path) in enumerate(chunk):
                 train_ids = preds.get(i, np.zeros(0, np.uint8))
                 hist += np.bincount(train_ids, minlength=space.num_ids)
-                semantickitti.write_label(tmp / "labels" / f"{path.stem}.label", semantickitti.to_raw_ids(train_ids))
-                records.append({"name": path.stem, "num_points": len(clouds[i])})
+                semantickitti.write_label(tmp / "labels" / f"{name}.label", semantickitti.to_raw_ids(train_ids))
+                record = {"name": name, "num_points": len(clouds[i])}
+                if truth_path:
+                    semantic, _ = semantickitti.read_label(truth_path, num_points=len(clouds[i]))
+                    truth.update(semantickitti.to_train_ids(semantic), train_ids, truth_path)
+                    record["source"] = str(path)
+                records.append(record)
             print(f"pseudo-labelled {min(start + batch_size, len(scans))}/{len(scans)} scans", flush=True)
         sidecar = {
-            "sample_shard": str(sample_dir),
+            **source,
             "scans": records,
             "labeler": {"model": payload["model"], "voxel_size": payload["voxel_size"],
                         "train": payload.get("train", {})},
             "class_histogram": {n: int(c) for n, c in zip(("ignore", *space.class_names), hist)},
+            # How right the labels are where the truth is known (the real scans of a pool).
+            "accuracy_against_truth": None if truth is None else truth.result().as_dict(list(space.class_names)),
             "seconds": round(time.time() - started, 2),
         }
         (tmp / SIDECAR).write_text(json.dumps(sidecar, indent=1, default=str))
     return sidecar
+
+
+def pool_records(pool_path: str | Path, label_dir: str | Path | None) -> list[dict]:
+    """Training records of a pool's real scans: with their true labels (``label_dir`` None) or with
+    the pseudo-labels of :func:`pseudo_label_pool` in ``label_dir`` (checked against the pool)."""
+    from omnilidar.downstream.seg.dataset import records_from_entries
+    from omnilidar.downstream.seg.subsets import read_subset
+
+    pool = read_subset(pool_path)
+    records = records_from_entries(pool["entries"], pool["dataset"])
+    if label_dir is None:
+        return records
+    sidecar = Path(label_dir) / SIDECAR
+    if not sidecar.is_file():
+        raise InputError(label_dir, "pseudo-label folder has no sidecar.json (run pseudo-label --pool)")
+    side = json.loads(sidecar.read_text())
+    if side.get("pool") is None or len(side["scans"]) != len(records):
+        raise InputError(label_dir, f"was not made from a pool of {len(records)} scans like {pool_path}")
+    for k, (rec, scan) in enumerate(zip(records, side["scans"])):
+        if scan.get("source") != rec["points"]:
+            raise InputError(label_dir, f"scan {k} was labelled from {scan.get('source')}, the pool holds {rec['points']}")
+        labels = Path(label_dir) / "labels" / f"{k:06d}.label"
+        if not labels.is_file():
+            raise InputError(labels, "pseudo-label file missing")
+        rec["labels"] = str(labels)
+    return records
 
 
 def generated_records(sample_dirs: list[str | Path], label_dirs: list[str | Path],

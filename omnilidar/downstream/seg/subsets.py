@@ -18,6 +18,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from omnilidar.data.index import read_index
 from omnilidar.errors import InputError
 from omnilidar.io.json_file import read_json
@@ -62,6 +64,33 @@ def make_subset(index_path: str | Path, split: str, fraction: float) -> dict:
         "source_scans": len(entries),
         # The index's content digest (it records its root's): trainers key resumable state by it.
         "index_digest": digest(index_path),
+        "entries": chosen,
+    }
+
+
+def make_pool(index_path: str | Path, split: str, exclude: dict, count: int, exclude_path: str | Path) -> dict:
+    """``count`` further scans of ``split`` that are not in the subset ``exclude``, spread evenly
+    over the rest of the split in index order (no randomness): the real scans the decomposition
+    study adds with their true labels, with the labeler's labels, or unlabelled (LaserMix)."""
+    index = read_index(index_path)
+    entries = index.get("splits", {}).get(split)
+    if entries is None:
+        raise InputError(index_path, f"has no split {split!r}")
+    taken = {e["points"] for e in exclude["entries"]}
+    rest = [e for e in entries if e["points"] not in taken]
+    if count < 1 or count > len(rest):
+        raise InputError(index_path, f"split {split} holds {len(rest)} scans outside the subset {exclude_path}; "
+                                     f"cannot take {count}")
+    missing = [e["points"] for e in rest if not e.get("labels")]
+    if missing:
+        raise InputError(missing[0], f"scan of split {split} has no label file; the pool needs true labels")
+    picks = np.unique(np.floor(np.arange(count) * len(rest) / count).astype(int))
+    chosen = [rest[i] for i in picks]
+    return {
+        "format": FORMAT, "dataset": index.get("dataset"), "split": split,
+        "fraction": len(chosen) / len(entries), "every": None, "num_scans": len(chosen),
+        "source_scans": len(entries), "index_digest": digest(index_path),
+        "excludes": {"subset": str(exclude_path), "num_scans": exclude["num_scans"]},
         "entries": chosen,
     }
 

@@ -44,12 +44,13 @@ from omnilidar.downstream.seg.models import build_segmentor, model_spec
 from omnilidar.downstream.seg.voxelize import IGNORE_INDEX, SegBatch
 from omnilidar.errors import InputError
 
-def trajectory(settings: dict, backbone: str, real: list[dict], generated: list[dict]) -> dict:
+def trajectory(settings: dict, backbone: str, real: list[dict], generated: list[dict], lasermix: bool = False) -> dict:
     """What determines the training trajectory besides seed, code and input contents."""
     relevant = trajectory_settings(settings)
     scans = [[r.get("points"), r.get("labels")] for r in real + generated]
-    return {"training": relevant, "backbone": backbone, "num_real": len(real), "num_generated": len(generated),
-            "scans": hashlib.sha256(json.dumps(scans, default=str).encode()).hexdigest()}
+    out = {"training": relevant, "backbone": backbone, "num_real": len(real), "num_generated": len(generated),
+           "scans": hashlib.sha256(json.dumps(scans, default=str).encode()).hexdigest()}
+    return out | ({"lasermix": True} if lasermix else {})
 
 
 def learning_rate(iteration: int, total: int, schedule: dict) -> float:
@@ -125,6 +126,7 @@ def train_segmentor(
     info: dict | None = None,
     inputs: dict | None = None,
     command: str = "train-segmentor",
+    lasermix: bool = False,
 ) -> dict:
     """Train one segmentor from scratch and write its weights-only payload to ``out``.
 
@@ -133,7 +135,9 @@ def train_segmentor(
     ``real`` / ``generated``: scan records (:mod:`.dataset`). ``info`` is stored in
     the payload (e.g. which subset and domains). ``inputs`` (``{name: path or
     [paths]}``) are the files the records come from; their content digests and the
-    code hash of ``command`` key the resumable state in ``work_dir``. Returns a summary dict.
+    code hash of ``command`` key the resumable state in ``work_dir``. With ``lasermix`` every
+    draw of a ``generated`` record is LaserMix-ed with a real one (:mod:`.lasermix`).
+    Returns a summary dict.
     """
 
     started = time.time()
@@ -146,11 +150,12 @@ def train_segmentor(
     iterations = total_iterations(sched, len(real), len(generated), mixing)
 
     run_dir = Path(work_dir)
-    provenance = job_provenance(command, trajectory(settings, backbone, real, generated), seed, inputs or {})
+    provenance = job_provenance(command, trajectory(settings, backbone, real, generated, lasermix), seed, inputs or {})
     resume_from = resume_point(run_dir, provenance, iterations, log=lambda m: print(m, flush=True))
     skip = checkpoint_iteration(resume_from) if resume_from else 0
 
-    dataset = SegScanDataset(real + generated, space, settings["augmentation"], seed, settings.get("max_points"))
+    dataset = SegScanDataset(real + generated, space, settings["augmentation"], seed, settings.get("max_points"),
+                             lasermix_from=len(real) if lasermix else None)
     sampler = MixedBatchSampler(len(real), len(generated), mixing, sched["batch_size"], seed, skip=skip)
     collate = SegCollate(space.num_ids, settings["voxel_size"], settings["max_voxels"], seed)
     loader = torch.utils.data.DataLoader(
@@ -174,7 +179,7 @@ def train_segmentor(
     runner.logger.info(
         f"omnilidar segmentor: {backbone} {spec['width']} depth {spec['depth']} ({params / 1e6:.2f} M parameters, "
         f"backend {net.backend}, {device}), {len(real)} real + {len(generated)} generated scans "
-        f"(mixing {mixing['mode']}), {iterations} iterations of batch {sched['batch_size']}"
+        f"(mixing {mixing['mode']}{', LaserMix' if lasermix else ''}), {iterations} iterations of batch {sched['batch_size']}"
         + (f", resuming at iteration {skip}" if resume_from else ", from scratch")
     )
     runner.train()
@@ -182,7 +187,7 @@ def train_segmentor(
 
     state = trained_state(net)
     summary = {"iterations": int(runner.iter), "parameters": int(params), "num_real": len(real),
-               "num_generated": len(generated), "mixing": mixing, "backend": net.backend,
+               "num_generated": len(generated), "mixing": mixing, "lasermix": bool(lasermix), "backend": net.backend,
                "device": str(device), "seconds": round(time.time() - started, 1), "work_dir": str(run_dir),
                "resumed_from": skip}
     save_payload({

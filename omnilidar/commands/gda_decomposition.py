@@ -1,0 +1,74 @@
+"""omnilidar gda-decomposition: where GDA's effect is won or lost (results/gda_decomposition.json)."""
+
+from __future__ import annotations
+
+from omnilidar.commands._common import data_source_arg, report_outputs_arg, seed_arg, settings_arg
+
+HELP = ("assemble the GDA decomposition: supervised-only, + real scans with true or pseudo-labels, "
+        "+ generated scans, + LaserMix, over seeds")
+DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
+
+
+def add_arguments(parser) -> None:
+    settings_arg(parser)
+    seed_arg(parser)
+    parser.add_argument("--evaluations", nargs="+", required=True,
+                        help="evaluate-segmentor outputs of every row, backbone and seed")
+    parser.add_argument("--pool-labels", required=True, help="the labeler's labels of the real pool (their accuracy)")
+    parser.add_argument("--labeler-evaluation", required=True, help="evaluate-segmentor output of the labeler")
+    data_source_arg(parser)
+    report_outputs_arg(parser, markdown=False)
+
+
+def run(args) -> int:
+    import json
+    from pathlib import Path
+
+    from omnilidar.config import validate
+    from omnilidar.dicts import deep_merge
+    from omnilidar.downstream.seg.experiments import labeler_quality, read_evaluation
+    from omnilidar.downstream.seg.pseudo_label import SIDECAR
+    from omnilidar.io.atomic import write_text_atomic
+    from omnilidar.io.json_file import read_json
+    from omnilidar.provenance import envelope
+    from omnilidar.report import decomposition as dc
+
+    settings = validate(dict(args.settings), "downstream.schema.yaml", source="--settings")
+    requested = settings["experiments"]["gda_decomposition"]
+    evals = [read_evaluation(p) for p in args.evaluations]
+    studies = dc.decomposition(evals)
+    pool = read_json(Path(args.pool_labels) / SIDECAR, "pseudo-label folder has no sidecar.json")
+    first = evals[0]
+    setup = {"dataset": first["train"]["info"]["dataset"], "percent": first["train"]["info"]["percent"],
+             "scans": requested["scans"], "domain": requested["domain"], "label_space": first["label_space"],
+             # The regime every run of the study trained with: downstream keys + the study's overrides.
+             "training": deep_merge({k: settings[k] for k in ("schedule", "voxel_size", "max_voxels", "max_points",
+                                                              "models", "augmentation", "mixing")},
+                                    requested["training"]),
+             "training_overrides": requested["training"],
+             "pool": first["train"]["info"].get("pool") or next(
+                 (e["train"]["info"]["pool"] for e in evals if e["train"]["info"].get("pool")), None),
+             "simulated_row": ("the domain builder's scans of the vehicle domain are the real scans (its scene "
+                               "applies no effect): the simulated row is the real_truth row")
+             if requested["domain"] == "vehicle" else "not run for this domain yet"}
+    timings = {f"train_{e['model']['backbone']}_{e['train']['info']['role']}_seed{e['seed']}": e["train"]["seconds"]
+               for e in evals}
+    doc = envelope(
+        "gda_decomposition", "gda-decomposition", args.settings, {"seed": args.seed}, timings, args.data_source,
+        setup=setup, rows=list(dc.ROWS), links=dc.LINKS, backbones=studies,
+        labeler=labeler_quality(read_evaluation(args.labeler_evaluation)),
+        pool_pseudo_labels_against_truth=pool.get("accuracy_against_truth"),
+        miou_convention="miou: semantic-kitti-api (absent classes count as 0)",
+    )
+    write_text_atomic(args.out, json.dumps(doc, indent=1))
+    dc.decomposition_figure(args.figure, doc)
+    for backbone, study in studies.items():
+        print(f"{backbone} (seeds {study['seeds']}):")
+        for row in dc.ROWS:
+            r = study["rows"][row]
+            std = f" +- {100 * r['miou_std']:.2f}" if r["miou_std"] is not None else ""
+            print(f"  {dc.ROW_LABELS[row]:<28} mIoU {100 * r['miou_mean']:.2f}{std}")
+        print(f"  ceiling clears supervised-only by 2 std: {study['ceiling_clears_two_std']}; "
+              f"costliest link: {study['costliest_link']}")
+    print(f"result: {args.out}  figure: {args.figure}")
+    return 0

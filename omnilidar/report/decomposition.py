@@ -1,0 +1,129 @@
+"""The GDA decomposition study: taking the chain apart, row by row.
+
+Every row trains the same backbone from scratch on the same label subset with
+the same schedule and seeds; only what is added differs (N scans each):
+
+    supervised_only   nothing
+    real_truth        N further real train scans with their true labels (the ceiling at this budget)
+    real_pseudo       the same N real scans labelled by the labeler (what pseudo-labelling costs)
+    generated         N generated scans of the domain labelled by the labeler (the method)
+    lasermix          the same N real scans LaserMix-ed with the labelled ones, labeler's labels
+
+Differences between rows are taken seed by seed (rows share their seeds), so
+the spread of a difference is not the sum of two rows' spreads. What each link
+costs:
+
+    pseudo_labels     real_truth - real_pseudo   (the labeler's errors on real scans)
+    samples           real_pseudo - generated    (generated instead of real scans, same labeler)
+    vs_lasermix       lasermix - generated       (the semi-supervised alternative on the same labeler)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from omnilidar.downstream.seg.experiments import runs_by_seed, seed_statistics
+from omnilidar.errors import InputError
+
+ROWS = ("supervised_only", "real_truth", "real_pseudo", "generated", "lasermix")
+ROLE_OF_ROW = {"supervised_only": "supervised_only", "real_truth": "real_truth", "real_pseudo": "real_pseudo",
+               "generated": "gda", "lasermix": "lasermix"}
+ROW_LABELS = {"supervised_only": "supervised only", "real_truth": "+N real, true labels",
+              "real_pseudo": "+N real, labeler's labels", "generated": "+N generated (GDA)",
+              "lasermix": "+N real, LaserMix"}
+LINKS = {"pseudo_labels": ("real_truth", "real_pseudo"), "samples": ("real_pseudo", "generated"),
+         "vs_lasermix": ("lasermix", "generated")}
+
+
+def _paired(a: list[float], b: list[float]) -> dict:
+    """Mean and sample standard deviation of the per-seed differences a - b."""
+    diff = np.asarray(a) - np.asarray(b)
+    return {"per_seed": diff.tolist(), "mean": float(diff.mean()),
+            "std": float(diff.std(ddof=1)) if len(diff) > 1 else None}
+
+
+def backbone_study(roles: dict[str, list[dict]], backbone: str) -> dict:
+    """Rows, gaps to supervised-only and link costs of one backbone's runs (role -> docs by seed)."""
+    missing = [row for row in ROWS if ROLE_OF_ROW[row] not in roles]
+    if missing:
+        raise InputError(None, f"{backbone}: no evaluation of row(s) {', '.join(missing)}")
+    rows, seeds = {}, None
+    for row in ROWS:
+        docs = roles[ROLE_OF_ROW[row]]
+        stats = seed_statistics(docs)
+        if seeds is None:
+            seeds = stats["seeds"]
+        elif stats["seeds"] != seeds:
+            raise InputError(docs[0]["_path"], f"{backbone} {row}: seeds {stats['seeds']} differ from {seeds}")
+        train = docs[0]["train"]
+        rows[row] = {**stats, "added_scans": train["num_generated"], "real_scans": train["num_real"],
+                     "iterations": train["iterations"], "train_seconds": [d["train"]["seconds"] for d in docs],
+                     "checkpoints": [d["checkpoint"] for d in docs]}
+    base = rows["supervised_only"]["miou"]
+    for row in ROWS[1:]:
+        rows[row]["gain_over_supervised"] = _paired(rows[row]["miou"], base)
+    spread = max(rows[r]["miou_std"] or 0.0 for r in ("supervised_only", "real_truth"))
+    ceiling = rows["real_truth"]["gain_over_supervised"]["mean"]
+    generated = rows["generated"]["gain_over_supervised"]["mean"]
+    return {
+        "seeds": seeds, "rows": rows,
+        "links": {name: _paired(rows[a]["miou"], rows[b]["miou"]) for name, (a, b) in LINKS.items()},
+        # Can this regime answer the question? The ceiling must clear supervised-only by 2 std.
+        "ceiling_clears_two_std": bool(len(seeds) > 1 and ceiling > 2 * spread),
+        # Where the method lands between supervised-only (0) and the ceiling (1).
+        "generated_share_of_ceiling": generated / ceiling if ceiling > 0 else None,
+    }
+
+
+def costliest_link(study: dict) -> str | None:
+    """The link (pseudo_labels or samples) that loses the most mIoU, or None when neither loses."""
+    costs = {k: study["links"][k]["mean"] for k in ("pseudo_labels", "samples")}
+    name = max(costs, key=costs.get)
+    return name if costs[name] > 0 else None
+
+
+def decomposition(evaluations: list[dict]) -> dict:
+    """backbone -> study, from the evaluate-segmentor outputs of every row, backbone and seed."""
+    out = {}
+    for backbone, roles in sorted(runs_by_seed(evaluations).items()):
+        study = backbone_study(roles, backbone)
+        out[backbone] = study | {"costliest_link": costliest_link(study)}
+    return out
+
+
+def decomposition_figure(path: str | Path, doc: dict) -> None:
+    """One panel per backbone: each row's mean val mIoU with its standard deviation and every
+    seed as a dot; a dashed line at supervised-only. Written atomically as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from omnilidar.io.atomic import atomic_path
+
+    studies = doc["backbones"]
+    fig, axes = plt.subplots(1, len(studies), figsize=(5.2 * len(studies), 4.0), squeeze=False)
+    colors = ("#7f7f7f", "#2ca02c", "#98df8a", "#1f77b4", "#ff7f0e")
+    for ax, (backbone, study) in zip(axes[0], studies.items()):
+        x = np.arange(len(ROWS))
+        means = [100 * study["rows"][r]["miou_mean"] for r in ROWS]
+        stds = [100 * (study["rows"][r]["miou_std"] or 0.0) for r in ROWS]
+        ax.bar(x, means, 0.6, yerr=stds if any(stds) else None, capsize=4, color=colors)
+        for i, r in enumerate(ROWS):
+            seeds = [100 * v for v in study["rows"][r]["miou"]]
+            ax.plot(np.full(len(seeds), x[i]) + np.linspace(-0.12, 0.12, len(seeds)), seeds, "k.", ms=4)
+        ax.axhline(means[0], color="k", ls="--", lw=0.8)
+        ax.set_xticks(x, [ROW_LABELS[r] for r in ROWS], rotation=25, ha="right", fontsize=7)
+        ax.set_ylabel("val mIoU (%)")
+        n = len(study["seeds"])
+        ax.set_title(f"{backbone} ({'mean +- std over ' + str(n) + ' seeds' if n > 1 else 'one seed'})", fontsize=9)
+        ax.grid(axis="y", alpha=0.3)
+    setup = doc["setup"]
+    fig.suptitle(f"GDA decomposition: {setup['percent']:g} % labels + N = {setup['scans']} scans "
+                 f"({setup['domain']} samples for GDA)", fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)

@@ -1,0 +1,217 @@
+"""The GDA decomposition study: the real pool, LaserMix, pseudo-labels of real scans with
+their accuracy, pool runs through the CLI (real training), the study's assembly and its DAG."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from omnilidar.cli import main
+from omnilidar.downstream.seg import subsets
+from omnilidar.downstream.seg.dataset import SegScanDataset, records_from_entries
+from omnilidar.downstream.seg.label_spaces import get_label_space
+from omnilidar.downstream.seg.lasermix import inclination, laser_mix
+from omnilidar.downstream.seg.pseudo_label import pool_records
+from omnilidar.errors import InputError
+from omnilidar.io import semantickitti
+from omnilidar.report import decomposition as dc
+
+from test_downstream_seg import _eval, _index
+from test_downstream_training import _settings, _write_sequence
+
+SPACE = get_label_space("semantickitti")
+
+
+def test_pool_is_disjoint_from_the_subset_and_evenly_spread(tmp_path):
+    index = _index(tmp_path, 200)
+    subset = subsets.make_subset(index, "train", 0.01)  # scans 0 and 100
+    pool = subsets.make_pool(index, "train", subset, 4, "subset.json")
+    names = [e["points"] for e in pool["entries"]]
+    assert len(names) == 4 and not set(names) & {e["points"] for e in subset["entries"]}
+    assert names == ["s/000001.bin", "s/000050.bin", "s/000101.bin", "s/000150.bin"]  # rest[floor(k * 198 / 4)]
+    assert pool["excludes"] == {"subset": "subset.json", "num_scans": 2}
+    assert subsets.make_pool(index, "train", subset, 4, "subset.json") == pool  # no randomness
+    with pytest.raises(InputError, match="198 scans outside"):
+        subsets.make_pool(index, "train", subset, 199, "subset.json")
+
+
+def test_make_subset_cli_needs_percent_or_a_pool_request(tmp_path):
+    index = _index(tmp_path, 50)
+    assert main(["make-subset", "--index", str(index), "--percent", "10", "--out", str(tmp_path / "s.json")]) == 0
+    assert main(["make-subset", "--index", str(index), "--exclude", str(tmp_path / "s.json"), "--count", "3",
+                 "--out", str(tmp_path / "p.json")]) == 0
+    assert subsets.read_subset(tmp_path / "p.json")["num_scans"] == 3
+    assert main(["make-subset", "--index", str(index), "--exclude", str(tmp_path / "s.json"),
+                 "--out", str(tmp_path / "q.json")]) != 0
+    assert not (tmp_path / "q.json").exists()
+
+
+def _cloud(pitch_deg: np.ndarray, label: int) -> tuple[np.ndarray, np.ndarray]:
+    pitch = np.radians(pitch_deg)
+    xyz = np.column_stack([10 * np.cos(pitch), np.zeros_like(pitch), 10 * np.sin(pitch)])
+    points = np.column_stack([xyz, np.ones(len(pitch))]).astype(np.float32)
+    return points, np.full(len(pitch), label, np.uint8)
+
+
+def test_lasermix_takes_alternate_inclination_bands_from_each_scan():
+    a = _cloud(np.linspace(-24, 2, 261), 1)
+    b = _cloud(np.linspace(-24, 2, 261) + 0.05, 2)
+    points, labels = laser_mix(a, b, np.random.default_rng(0))
+    pitch = np.degrees(inclination(points))
+    # Sorting the mix by inclination, the source (label) changes band by band: as many runs
+    # as bands, each run from one scan, neighbouring runs from different scans.
+    runs = np.flatnonzero(np.diff(labels[np.argsort(pitch)].astype(int))) + 1
+    assert 2 <= len(runs) + 1 <= 6
+    assert 0.3 < (labels == 1).mean() < 0.7
+    # Points keep their own labels and are not altered.
+    assert set(map(tuple, points[labels == 1])) <= set(map(tuple, a[0]))
+    again = laser_mix(a, b, np.random.default_rng(0))
+    assert np.array_equal(again[0], points) and np.array_equal(again[1], labels)
+
+
+def test_lasermix_draws_are_part_of_the_seeded_training_stream(tmp_path):
+    real = records_from_entries(_write_sequence(tmp_path / "a", 2, 0), "semantickitti")
+    extra = records_from_entries(_write_sequence(tmp_path / "b", 2, 1), "semantickitti")
+    data = SegScanDataset(real + extra, SPACE, None, seed=3, lasermix_from=2)
+    mixed = data[(7, 2)]
+    plain = SegScanDataset(real + extra, SPACE, None, seed=3)[(7, 2)]
+    assert len(mixed["points"]) != len(plain["points"]) or not np.array_equal(mixed["points"], plain["points"])
+    assert np.array_equal(data[(7, 2)]["points"], mixed["points"])  # same draw, same mix
+    # Draws of the labelled scans are not mixed.
+    assert np.array_equal(data[(7, 0)]["points"], SegScanDataset(real, SPACE, None, seed=3)[(7, 0)]["points"])
+
+
+@pytest.fixture(scope="module")
+def study_tree(tmp_path_factory):
+    """A tiny SemanticKITTI-like index, a subset, a pool, and a labeler trained on it (CLI)."""
+    root = tmp_path_factory.mktemp("decomposition")
+    entries = _write_sequence(root / "train", 6, 0)
+    index = root / "index.json"
+    index.write_text(json.dumps({"dataset": "semantickitti", "splits": {"train": entries, "val": entries[:2]}}))
+    settings = json.dumps(_settings(2))
+    assert main(["make-subset", "--index", str(index), "--percent", "34", "--out", str(root / "subset.json")]) == 0
+    assert main(["make-subset", "--index", str(index), "--exclude", str(root / "subset.json"), "--count", "3",
+                 "--out", str(root / "pool.json")]) == 0
+    assert main(["train-segmentor", "--backbone", "minkunet", "--subset", str(root / "subset.json"),
+                 "--settings", settings, "--work-dir", str(root / "work_labeler"),
+                 "--out", str(root / "labeler.pt")]) == 0
+    return root, settings
+
+
+def test_pseudo_labels_of_the_pool_record_their_accuracy_against_truth(study_tree):
+    root, _ = study_tree
+    out = root / "pool_labels"
+    assert main(["pseudo-label", "--labeler", str(root / "labeler.pt"), "--pool", str(root / "pool.json"),
+                 "--settings", json.dumps({"device": "cpu"}), "--out", str(out)]) == 0
+    side = json.loads((out / "sidecar.json").read_text())
+    acc = side["accuracy_against_truth"]
+    # Recompute the accuracy from the files: pseudo-labels against the pool's true labels.
+    pool = subsets.read_subset(root / "pool.json")
+    correct = total = 0
+    for k, entry in enumerate(pool["entries"]):
+        truth = semantickitti.to_train_ids(semantickitti.read_label(entry["labels"])[0])
+        pred = semantickitti.to_train_ids(semantickitti.read_label(out / "labels" / f"{k:06d}.label")[0])
+        keep = truth != 0
+        correct += int((truth[keep] == pred[keep]).sum())
+        total += int(keep.sum())
+    assert acc["accuracy"] == pytest.approx(correct / total)
+    records = pool_records(root / "pool.json", out)
+    assert [r["labels"] for r in records] == [str(out / "labels" / f"{k:06d}.label") for k in range(3)]
+    assert pool_records(root / "pool.json", None)[0]["labels"] == pool["entries"][0]["labels"]
+
+
+def test_pool_runs_train_on_truth_pseudo_labels_or_lasermix(study_tree):
+    root, settings = study_tree
+    labels = root / "pool_labels"
+    if not labels.exists():
+        assert main(["pseudo-label", "--labeler", str(root / "labeler.pt"), "--pool", str(root / "pool.json"),
+                     "--settings", json.dumps({"device": "cpu"}), "--out", str(labels)]) == 0
+    weights = {}
+    for role, flags in (("real_truth", []), ("real_pseudo", ["--pool-labels", str(labels)]),
+                        ("lasermix", ["--pool-labels", str(labels), "--lasermix"])):
+        out = root / f"{role}.pt"
+        assert main(["train-segmentor", "--backbone", "minkunet", "--subset", str(root / "subset.json"),
+                     "--settings", settings, "--work-dir", str(root / f"work_{role}"), "--out", str(out),
+                     "--pool", str(root / "pool.json"), *flags]) == 0
+        payload = torch.load(out, weights_only=True)
+        assert payload["train"]["info"]["role"] == role
+        assert payload["train"]["num_real"] == 2 and payload["train"]["num_generated"] == 3
+        assert payload["train"]["lasermix"] == (role == "lasermix")
+        weights[role] = payload["state_dict"]
+    first = next(iter(weights["real_truth"]))
+    assert not torch.equal(weights["real_truth"][first], weights["lasermix"][first])
+    # Bad requests: one clear error, no checkpoint.
+    bad = root / "bad.pt"
+    assert main(["train-segmentor", "--backbone", "minkunet", "--subset", str(root / "subset.json"),
+                 "--settings", settings, "--work-dir", str(root / "work_bad"), "--out", str(bad),
+                 "--pool", str(root / "pool.json"), "--lasermix"]) != 0
+    assert not bad.exists()
+
+
+def _seeded(backbone, role, miou, seed):
+    doc = _eval(backbone, role, miou)
+    doc["seed"], doc["_path"] = seed, f"{backbone}_{role}_{seed}.json"
+    return doc
+
+
+def test_study_gains_are_paired_by_seed_and_name_the_costliest_link():
+    values = {"supervised_only": [0.10, 0.12, 0.11], "real_truth": [0.20, 0.21, 0.22],
+              "real_pseudo": [0.17, 0.18, 0.16], "gda": [0.09, 0.12, 0.10], "lasermix": [0.15, 0.16, 0.14]}
+    evals = [_seeded("minkunet", role, m, s) for role, ms in values.items() for s, m in enumerate(ms)]
+    study = dc.decomposition(evals)["minkunet"]
+    assert study["seeds"] == [0, 1, 2]
+    assert study["rows"]["real_truth"]["gain_over_supervised"]["per_seed"] == pytest.approx([0.10, 0.09, 0.11])
+    assert study["links"]["pseudo_labels"]["mean"] == pytest.approx(0.04)
+    assert study["links"]["samples"]["mean"] == pytest.approx((0.08 + 0.06 + 0.06) / 3)
+    assert study["costliest_link"] == "samples"
+    assert study["ceiling_clears_two_std"] is True
+    assert study["generated_share_of_ceiling"] == pytest.approx((-0.01 + 0 - 0.01) / 3 / 0.10)
+    # A row missing, or a row run with other seeds, is an error naming it.
+    with pytest.raises(InputError, match="lasermix"):
+        dc.decomposition([e for e in evals if e["train"]["info"]["role"] != "lasermix"])
+    with pytest.raises(InputError, match="seeds"):
+        dc.decomposition([e for e in evals if not (e["train"]["info"]["role"] == "gda" and e["seed"] == 2)])
+
+
+def test_one_seed_never_claims_the_ceiling_clears_the_noise():
+    evals = [_seeded("spvcnn", role, m, 0) for role, m in
+             (("supervised_only", 0.1), ("real_truth", 0.5), ("real_pseudo", 0.4), ("gda", 0.2), ("lasermix", 0.3))]
+    study = dc.decomposition(evals)["spvcnn"]
+    assert study["ceiling_clears_two_std"] is False and study["rows"]["generated"]["miou_std"] is None
+
+
+def test_decomposition_command_writes_result_and_figure(tmp_path, capsys):
+    paths = []
+    for role, ms in {"supervised_only": [0.10, 0.12], "real_truth": [0.2, 0.22], "real_pseudo": [0.15, 0.16],
+                     "gda": [0.11, 0.1], "lasermix": [0.14, 0.13]}.items():
+        for seed, m in enumerate(ms):
+            doc = _seeded("minkunet", role, m, seed)
+            doc["train"]["info"]["dataset"] = "semantickitti"
+            path = tmp_path / f"{role}_{seed}.json"
+            path.write_text(json.dumps(doc))
+            paths.append(str(path))
+    labeler = tmp_path / "labeler.json"
+    labeler.write_text(json.dumps(_seeded("minkunet", "supervised_only", 0.3, 0)))
+    pool = tmp_path / "pool_labels"
+    pool.mkdir()
+    (pool / "sidecar.json").write_text(json.dumps({"accuracy_against_truth": {"miou": 0.42}}))
+    out, fig = tmp_path / "gda_decomposition.json", tmp_path / "gda_decomposition.png"
+    assert main(["gda-decomposition", "--evaluations", *paths, "--pool-labels", str(pool),
+                 "--labeler-evaluation", str(labeler), "--settings", "{}", "--seed", "0",
+                 "--data-source", json.dumps({"semantickitti": {"root": "data/synthetic/semantickitti", "kind": "synthetic"}}), "--out", str(out), "--figure", str(fig)]) == 0
+    doc = json.loads(out.read_text())
+    study = doc["backbones"]["minkunet"]
+    assert study["rows"]["real_truth"]["miou_mean"] == pytest.approx(0.21)
+    assert study["costliest_link"] == "pseudo_labels" or study["costliest_link"] == "samples"
+    assert doc["pool_pseudo_labels_against_truth"] == {"miou": 0.42} and doc["labeler"]["val_miou"] == 0.3
+    assert fig.stat().st_size > 10_000 and fig.read_bytes()[:4] == b"\x89PNG"
+    assert "+N real, true labels" in capsys.readouterr().out
+    # A missing row: one clear error, nothing written.
+    out.unlink()
+    assert main(["gda-decomposition", "--evaluations", *paths[:-2], "--pool-labels", str(pool),
+                 "--labeler-evaluation", str(labeler), "--settings", "{}", "--seed", "0",
+                 "--data-source", json.dumps({"semantickitti": {"root": "data/synthetic/semantickitti", "kind": "synthetic"}}), "--out", str(out), "--figure", str(fig)]) != 0
+    assert not out.exists()
