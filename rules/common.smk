@@ -435,12 +435,21 @@ STUDY_FLAGS = {
 }
 
 
-def study_settings():
-    """The downstream training keys with the study's own overrides (experiments.gda_decomposition.training)."""
+def study_settings(row):
+    """The downstream training keys with the study's own overrides (experiments.gda_decomposition.training)
+    and, for an attempt's row (gda-<name>), the attempt's."""
     from omnilidar.dicts import deep_merge
 
-    base = {k: DOWNSTREAM[k] for k in (*TRAINING_KEYS, "mixing")}
-    return json.dumps(deep_merge(base, DECOMPOSITION["training"]), sort_keys=True)
+    merged = deep_merge({k: DOWNSTREAM[k] for k in (*TRAINING_KEYS, "mixing")}, DECOMPOSITION["training"])
+    if row.startswith("gda-"):
+        merged = deep_merge(merged, DECOMPOSITION["attempts"][row[len("gda-"):]])
+    return json.dumps(merged, sort_keys=True)
+
+
+def study_row_pattern():
+    """Wildcard pattern of a study run's row: a base row, or gda-<attempt>."""
+    attempts = "|".join(f"gda-{name}" for name in DECOMPOSITION["attempts"])
+    return "|".join([*STUDY_FLAGS, *([attempts] if attempts else [])])
 
 
 def pool_file(pct, scans):
@@ -460,7 +469,7 @@ def study_run_inputs(w):
         inputs["pool"] = pool_file(w.pct, w.scans)
     if w.row in ("pseudo", "lasermix"):
         inputs["labels"] = pool_labels_dir(w.pct, w.scans)
-    if w.row == "gda":
+    if w.row.split("-")[0] == "gda":
         inputs["samples"] = curve_shards(DECOMPOSITION["domain"], w.scans)
         inputs["pseudo"] = curve_pseudo_labels(DECOMPOSITION["domain"], w.scans)
     return inputs
@@ -472,6 +481,14 @@ def decomposition_evaluations():
     return [run_evaluation("semantickitti", b, d["percent"],
                            f"study-{row}{DECOMPOSITION_SCANS}_seed{config['seed'] + k}", "val")
             for b in d["backbones"] for row in DECOMPOSITION_RUNS.values() for k in range(d["seeds"])]
+
+
+def attempt_evaluations():
+    """NAME=evaluation arguments of every attempt's runs (gda-<name> rows)."""
+    d = DECOMPOSITION
+    return [f"{name}=" + run_evaluation("semantickitti", b, d["percent"],
+                                        f"study-gda-{name}{DECOMPOSITION_SCANS}_seed{config['seed'] + k}", "val")
+            for name in d["attempts"] for b in d["backbones"] for k in range(d["seeds"])]
 
 
 # Detection helpers (rules/detection.smk), after what they read.

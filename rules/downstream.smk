@@ -546,14 +546,15 @@ rule train_study:
     wildcard_constraints:
         backbone=r"minkunet|spvcnn",
         pct=r"\d+",
-        row="|".join(STUDY_FLAGS),
+        row=study_row_pattern(),
         scans=r"[1-9]\d*",
         seed=r"\d+",
     params:
-        settings=study_settings(),
+        settings=lambda w: study_settings(w.row),
         seed=lambda w: int(w.seed),
         work_dir=lambda w, output: job_work_dir(output[0]),
-        flags=lambda w, input: STUDY_FLAGS[w.row].format(input=input, scans=w.scans, domain=DECOMPOSITION["domain"]),
+        flags=lambda w, input: STUDY_FLAGS[w.row.split("-")[0]].format(input=input, scans=w.scans,
+                                                                      domain=DECOMPOSITION["domain"]),
         code=code("train-segmentor"),
     log:
         f"logs/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.log",
@@ -575,6 +576,7 @@ rule gda_decomposition:
     with the labeler's labels, + generated scans, + LaserMix, per backbone over several seeds."""
     input:
         evaluations=decomposition_evaluations(),
+        attempts=[a.split("=", 1)[1] for a in attempt_evaluations()],
         pool_labels=pool_labels_dir(DECOMPOSITION["percent"], DECOMPOSITION_SCANS),
         labeler=LABELER_VAL,
     output:
@@ -585,6 +587,7 @@ rule gda_decomposition:
         settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
+        attempts=" ".join(f"--attempt {a}" for a in attempt_evaluations()),
         code=result_code("gda-decomposition"),
     log:
         "logs/downstream/gda_decomposition.log",
@@ -596,7 +599,8 @@ rule gda_decomposition:
         **job_resources("gda_result"),
     shell:
         with_table(
-            "omnilidar gda-decomposition --evaluations {input.evaluations} --pool-labels {input.pool_labels} "
+            "omnilidar gda-decomposition --evaluations {input.evaluations} {params.attempts} "
+            "--pool-labels {input.pool_labels} "
             "--labeler-evaluation {input.labeler} --settings {params.settings:q} --seed {params.seed} "
             "--data-source {params.data_source:q} --out {output.json} --figure {output.figure} > {log} 2>&1"
         )

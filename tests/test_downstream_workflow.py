@@ -207,3 +207,13 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
                          "--configfile", "config/config.yaml", "study.yaml").stdout
     trains = [line for line in headline.splitlines() if "omnilidar train-segmentor" in line]
     assert len(trains) == 4 and not any('"iterations": 123' in line for line in trains)
+    # Each attempt trains the generated row again, on its own overrides, and joins the result.
+    (workdir / "attempt.yaml").write_text(
+        "downstream: {experiments: {gda_decomposition: {attempts: {share25: {mixing: {mode: ratio, "
+        "generated_share: 0.25}}}}}}\n")
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
+                    "--configfile", "config/config.yaml", "attempt.yaml").stdout
+    tried = [line for line in out.splitlines() if "omnilidar train-segmentor" in line and "study-gda-share25" in line]
+    assert len(tried) == 6 and all('"generated_share": 0.25' in line and "--max-generated 16" in line for line in tried)
+    result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
+    assert result.count("--attempt share25=") == 6

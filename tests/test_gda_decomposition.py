@@ -14,7 +14,7 @@ from omnilidar.downstream.seg import subsets
 from omnilidar.downstream.seg.dataset import SegScanDataset, records_from_entries
 from omnilidar.downstream.seg.label_spaces import get_label_space
 from omnilidar.downstream.seg.lasermix import inclination, laser_mix
-from omnilidar.downstream.seg.pseudo_label import pool_records
+from omnilidar.downstream.seg.pseudo_label import pool_records, read_confidence
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
 from omnilidar.report import decomposition as dc
@@ -120,6 +120,16 @@ def test_pseudo_labels_of_the_pool_record_their_accuracy_against_truth(study_tre
     assert acc["accuracy"] == pytest.approx(correct / total)
     records = pool_records(root / "pool.json", out)
     assert [r["labels"] for r in records] == [str(out / "labels" / f"{k:06d}.label") for k in range(3)]
+    # Confidences beside the labels: one per point, a probability of the chosen class (>= 1/20).
+    conf = read_confidence(records[0]["labels"], len(semantickitti.read_points(records[0]["points"])))
+    assert conf is not None and conf.min() >= 0.05 - 1 / 255 and conf.max() <= 1.0
+    # min_confidence ignores exactly the pseudo-labelled points below it, and only in training draws.
+    threshold = float(np.median(conf))
+    masked = SegScanDataset(records, SPACE, None, seed=0, min_confidence=threshold)
+    plain = SegScanDataset(records, SPACE, None, seed=0)
+    a, b = masked[(0, 0)]["labels"], plain[(0, 0)]["labels"]
+    assert np.array_equal(a == 0, (b == 0) | (conf < threshold)) and np.array_equal(a[a > 0], b[a > 0])
+    assert np.array_equal(masked[0]["labels"], b)  # evaluation items are never masked
     assert pool_records(root / "pool.json", None)[0]["labels"] == pool["entries"][0]["labels"]
 
 
@@ -215,3 +225,15 @@ def test_decomposition_command_writes_result_and_figure(tmp_path, capsys):
                  "--labeler-evaluation", str(labeler), "--settings", "{}", "--seed", "0",
                  "--data-source", json.dumps({"semantickitti": {"root": "data/synthetic/semantickitti", "kind": "synthetic"}}), "--out", str(out), "--figure", str(fig)]) != 0
     assert not out.exists()
+
+
+def test_attempts_are_scored_against_the_plain_generated_row():
+    values = {"supervised_only": [0.10, 0.12], "real_truth": [0.2, 0.22], "real_pseudo": [0.15, 0.16],
+              "gda": [0.11, 0.10], "lasermix": [0.14, 0.13]}
+    evals = [_seeded("minkunet", role, m, s) for role, ms in values.items() for s, m in enumerate(ms)]
+    tried = [_seeded("minkunet", "gda", m, s) for s, m in enumerate([0.13, 0.11])]
+    study = dc.decomposition(evals, {"confident": tried})["minkunet"]
+    assert study["attempts"]["confident"]["gain_over_generated"]["per_seed"] == pytest.approx([0.02, 0.01])
+    assert study["attempts"]["confident"]["gain_over_supervised"]["mean"] == pytest.approx(0.01)
+    with pytest.raises(InputError, match="seeds"):
+        dc.decomposition(evals, {"confident": tried[:1]})

@@ -14,6 +14,8 @@ def add_arguments(parser) -> None:
     seed_arg(parser)
     parser.add_argument("--evaluations", nargs="+", required=True,
                         help="evaluate-segmentor outputs of every row, backbone and seed")
+    parser.add_argument("--attempt", action="append", default=[], metavar="NAME=EVALUATION",
+                        help="evaluation of one run of a remedy tried on the generated row (repeatable)")
     parser.add_argument("--pool-labels", required=True, help="the labeler's labels of the real pool (their accuracy)")
     parser.add_argument("--labeler-evaluation", required=True, help="evaluate-segmentor output of the labeler")
     data_source_arg(parser)
@@ -28,6 +30,7 @@ def run(args) -> int:
     from omnilidar.dicts import deep_merge
     from omnilidar.downstream.seg.experiments import labeler_quality, read_evaluation
     from omnilidar.downstream.seg.pseudo_label import SIDECAR
+    from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
     from omnilidar.io.json_file import read_json
     from omnilidar.provenance import envelope
@@ -36,7 +39,16 @@ def run(args) -> int:
     settings = validate(dict(args.settings), "downstream.schema.yaml", source="--settings")
     requested = settings["experiments"]["gda_decomposition"]
     evals = [read_evaluation(p) for p in args.evaluations]
-    studies = dc.decomposition(evals)
+    attempts: dict[str, list[dict]] = {}
+    for item in args.attempt:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise InputError(None, f"--attempt takes NAME=EVALUATION, got {item!r}")
+        attempts.setdefault(name, []).append(read_evaluation(path))
+    unknown = set(attempts) - set(requested["attempts"])
+    if unknown:
+        raise InputError(None, f"attempt(s) {', '.join(sorted(unknown))} are not in experiments.gda_decomposition.attempts")
+    studies = dc.decomposition(evals, attempts)
     pool = read_json(Path(args.pool_labels) / SIDECAR, "pseudo-label folder has no sidecar.json")
     first = evals[0]
     setup = {"dataset": first["train"]["info"]["dataset"], "percent": first["train"]["info"]["percent"],
@@ -55,7 +67,7 @@ def run(args) -> int:
                for e in evals}
     doc = envelope(
         "gda_decomposition", "gda-decomposition", args.settings, {"seed": args.seed}, timings, args.data_source,
-        setup=setup, rows=list(dc.ROWS), links=dc.LINKS, backbones=studies,
+        setup=setup, rows=list(dc.ROWS), links=dc.LINKS, attempts=requested["attempts"], backbones=studies,
         labeler=labeler_quality(read_evaluation(args.labeler_evaluation)),
         pool_pseudo_labels_against_truth=pool.get("accuracy_against_truth"),
         miou_convention="miou: semantic-kitti-api (absent classes count as 0)",
@@ -68,6 +80,9 @@ def run(args) -> int:
             r = study["rows"][row]
             std = f" +- {100 * r['miou_std']:.2f}" if r["miou_std"] is not None else ""
             print(f"  {dc.ROW_LABELS[row]:<28} mIoU {100 * r['miou_mean']:.2f}{std}")
+        for name, r in study["attempts"].items():
+            std = f" +- {100 * r['miou_std']:.2f}" if r["miou_std"] is not None else ""
+            print(f"  {'GDA, ' + name:<28} mIoU {100 * r['miou_mean']:.2f}{std}")
         print(f"  ceiling clears supervised-only by 2 std: {study['ceiling_clears_two_std']}; "
               f"costliest link: {study['costliest_link']}")
     print(f"result: {args.out}  figure: {args.figure}")

@@ -84,12 +84,31 @@ def costliest_link(study: dict) -> str | None:
     return name if costs[name] > 0 else None
 
 
-def decomposition(evaluations: list[dict]) -> dict:
-    """backbone -> study, from the evaluate-segmentor outputs of every row, backbone and seed."""
+def attempt_record(study: dict, docs: list[dict], name: str, backbone: str) -> dict:
+    """One remedy tried on the generated row: its seeds' scores and its gains, seed by seed, over
+    the plain generated row and over supervised-only."""
+    stats = seed_statistics(docs)
+    if stats["seeds"] != study["seeds"]:
+        raise InputError(docs[0]["_path"], f"{backbone} attempt {name}: seeds {stats['seeds']} differ from "
+                                           f"{study['seeds']}")
+    return {**stats, "mixing": docs[0]["train"].get("mixing"), "iterations": docs[0]["train"]["iterations"],
+            "gain_over_generated": _paired(stats["miou"], study["rows"]["generated"]["miou"]),
+            "gain_over_supervised": _paired(stats["miou"], study["rows"]["supervised_only"]["miou"])}
+
+
+def decomposition(evaluations: list[dict], attempts: dict[str, list[dict]] | None = None) -> dict:
+    """backbone -> study, from the evaluate-segmentor outputs of every row, backbone and seed, and
+    of every attempt (name -> its runs' outputs)."""
     out = {}
     for backbone, roles in sorted(runs_by_seed(evaluations).items()):
         study = backbone_study(roles, backbone)
-        out[backbone] = study | {"costliest_link": costliest_link(study)}
+        tried = {}
+        for name, docs in (attempts or {}).items():
+            mine = sorted((d for d in docs if d["model"]["backbone"] == backbone), key=lambda d: d["seed"])
+            if not mine:
+                raise InputError(None, f"attempt {name}: no {backbone} run given")
+            tried[name] = attempt_record(study, mine, name, backbone)
+        out[backbone] = study | {"costliest_link": costliest_link(study), "attempts": tried}
     return out
 
 
@@ -105,17 +124,20 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
 
     studies = doc["backbones"]
     fig, axes = plt.subplots(1, len(studies), figsize=(5.2 * len(studies), 4.0), squeeze=False)
-    colors = ("#7f7f7f", "#2ca02c", "#98df8a", "#1f77b4", "#ff7f0e")
+    colors = ["#7f7f7f", "#2ca02c", "#98df8a", "#1f77b4", "#ff7f0e"]
     for ax, (backbone, study) in zip(axes[0], studies.items()):
-        x = np.arange(len(ROWS))
-        means = [100 * study["rows"][r]["miou_mean"] for r in ROWS]
-        stds = [100 * (study["rows"][r]["miou_std"] or 0.0) for r in ROWS]
-        ax.bar(x, means, 0.6, yerr=stds if any(stds) else None, capsize=4, color=colors)
-        for i, r in enumerate(ROWS):
-            seeds = [100 * v for v in study["rows"][r]["miou"]]
+        bars = [(ROW_LABELS[r], study["rows"][r]) for r in ROWS]
+        bars += [(f"GDA, {name}", rec) for name, rec in study.get("attempts", {}).items()]
+        x = np.arange(len(bars))
+        means = [100 * rec["miou_mean"] for _, rec in bars]
+        stds = [100 * (rec["miou_std"] or 0.0) for _, rec in bars]
+        ax.bar(x, means, 0.6, yerr=stds if any(stds) else None, capsize=4,
+               color=colors + ["#aec7e8"] * (len(bars) - len(colors)))
+        for i, (_, rec) in enumerate(bars):
+            seeds = [100 * v for v in rec["miou"]]
             ax.plot(np.full(len(seeds), x[i]) + np.linspace(-0.12, 0.12, len(seeds)), seeds, "k.", ms=4)
         ax.axhline(means[0], color="k", ls="--", lw=0.8)
-        ax.set_xticks(x, [ROW_LABELS[r] for r in ROWS], rotation=25, ha="right", fontsize=7)
+        ax.set_xticks(x, [label for label, _ in bars], rotation=25, ha="right", fontsize=7)
         ax.set_ylabel("val mIoU (%)")
         n = len(study["seeds"])
         ax.set_title(f"{backbone} ({'mean +- std over ' + str(n) + ' seeds' if n > 1 else 'one seed'})", fontsize=9)

@@ -111,6 +111,16 @@ def read_record(record: dict, space: LabelSpace) -> tuple[np.ndarray, np.ndarray
     return points, read_train_ids(record, len(points), space)
 
 
+def confident_labels(record: dict, labels: np.ndarray, threshold: float) -> np.ndarray:
+    """``labels`` with the points whose pseudo-label confidence is below ``threshold`` set to ignore."""
+    from omnilidar.downstream.seg.pseudo_label import read_confidence
+
+    conf = read_confidence(record["labels"], len(labels))
+    if conf is None:
+        raise InputError(record["labels"], "pseudo-labels have no confidences (made by an older pseudo-label run)")
+    return np.where(conf >= threshold, labels, 0).astype(labels.dtype)
+
+
 def augment(points: np.ndarray, rng: np.random.Generator, rotation: bool, scale: tuple[float, float]) -> np.ndarray:
     """Rotate about z by U[0, 2 pi) (if ``rotation``) and scale x, y, z by U[lo, hi]."""
     out = points.copy()
@@ -133,17 +143,20 @@ class SegScanDataset(torch.utils.data.Dataset):
     of :func:`draw_rng`); evaluation items are never capped. With ``augmentation`` (dict with ``rotation`` and ``scale``) a ``(draw, i)``
     item is augmented with :func:`draw_rng` ``(seed, draw)``. With ``lasermix_from`` = R, a
     training draw of record i >= R is LaserMix-ed (:mod:`.lasermix`) with one of the records
-    0..R-1, drawn with purpose 3, before the point cap and augmentation.
+    0..R-1, drawn with purpose 3, before the point cap and augmentation. With
+    ``min_confidence`` > 0, points of pseudo-labelled records (``"pseudo": True``) whose labeler
+    confidence is below it are ignored in training (label 0).
     """
 
     def __init__(self, records: list[dict], space: LabelSpace, augmentation: dict | None = None, seed: int = 0,
-                 max_points: int | None = None, lasermix_from: int | None = None):
+                 max_points: int | None = None, lasermix_from: int | None = None, min_confidence: float = 0.0):
         self.records = list(records)
         self.space = space
         self.augmentation = augmentation
         self.seed = int(seed)
         self.max_points = max_points
         self.lasermix_from = lasermix_from
+        self.min_confidence = float(min_confidence)
 
     def __len__(self) -> int:
         return len(self.records)
@@ -152,6 +165,8 @@ class SegScanDataset(torch.utils.data.Dataset):
         draw, i = key if isinstance(key, tuple) else (None, key)
         rec = self.records[i]
         points, labels = read_record(rec, self.space)
+        if self.min_confidence > 0 and draw is not None and rec.get("pseudo"):
+            labels = confident_labels(rec, labels, self.min_confidence)
         if self.lasermix_from and draw is not None and i >= self.lasermix_from:
             rng = draw_rng(self.seed, draw, purpose=3)
             partner = read_record(self.records[int(rng.integers(self.lasermix_from))], self.space)

@@ -36,22 +36,31 @@ def load_segmentor(path: str | Path, backend: str = "auto", device: str = "auto"
 
 @torch.no_grad()
 def predict_points(model: torch.nn.Module, scans: list[np.ndarray], voxel_size: float,
-                   num_ids: int, paths: list | None = None) -> list[np.ndarray]:
-    """Train-id predictions (1..K, uint8) for every point of each scan."""
+                   num_ids: int, paths: list | None = None, confidence: bool = False):
+    """Train-id predictions (1..K, uint8) for every point of each scan; with ``confidence``,
+    (predictions, softmax probability of the predicted class as float32) pairs."""
     coll = SegCollate(num_ids, voxel_size)
     items = [{"points": p, "labels": np.zeros(len(p), np.uint8), "path": (paths or [None] * len(scans))[i],
               "draw": None} for i, p in enumerate(scans)]
     batch = coll(items)["batch"]
     device = next(model.parameters()).device
     logits = model(batch.to(device))
-    pred = (logits.argmax(1) + 1).to(torch.uint8).cpu()
+    prob, top = torch.softmax(logits.float(), dim=1).max(dim=1)
+    pred = (top + 1).to(torch.uint8).cpu()
+    prob = prob.cpu()
     out = []
-    for scan, part, idx in zip(scans, batch.split_points(pred), batch.split_points(batch.point_index)):
+    for scan, part, p_part, idx in zip(scans, batch.split_points(pred), batch.split_points(prob),
+                                       batch.split_points(batch.point_index)):
         full = np.zeros(len(scan), np.uint8)
         full[idx.numpy()] = part.numpy()
         if (full == 0).any():  # cannot happen without a voxel cap; never hand back ignore
             raise RuntimeError("some points received no prediction")
-        out.append(full)
+        if confidence:
+            conf = np.zeros(len(scan), np.float32)
+            conf[idx.numpy()] = p_part.numpy()
+            out.append((full, conf))
+        else:
+            out.append(full)
     return out
 
 

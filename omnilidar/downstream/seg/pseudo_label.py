@@ -4,6 +4,7 @@ pseudo-labelling costs), and pairing them with their scans.
 One pseudo-label shard per sample shard::
 
     OUT/labels/%06d.label    uint32 raw SemanticKITTI ids (train ids through LEARNING_MAP_INV)
+    OUT/confidence/%06d.bin  uint8 per point: the labeler's softmax probability of that label x 255
     OUT/sidecar.json         sample shard, scan names and point counts, labeler
 
 named like the sample shard's ``velodyne/%06d.bin``. A generated scan with no
@@ -30,6 +31,24 @@ from omnilidar.io.atomic import atomic_path
 from omnilidar.metrics.segmentation import ConfusionMatrix
 
 SIDECAR = "sidecar.json"
+CONFIDENCE = "confidence"
+
+
+def confidence_file(label_file: str | Path) -> Path:
+    """The confidence file beside a pseudo-label file (``labels/X.label`` -> ``confidence/X.bin``)."""
+    label_file = Path(label_file)
+    return label_file.parent.parent / CONFIDENCE / f"{label_file.stem}.bin"
+
+
+def read_confidence(label_file: str | Path, num_points: int) -> np.ndarray | None:
+    """Per-point labeler confidence (0..1) of a pseudo-label file, None when none was written."""
+    path = confidence_file(label_file)
+    if not path.is_file():
+        return None
+    conf = np.fromfile(path, np.uint8)
+    if len(conf) != num_points:
+        raise InputError(path, f"holds {len(conf)} confidences for {num_points} points")
+    return conf.astype(np.float32) / 255.0
 
 
 def sample_scans(sample_dir: str | Path) -> list[Path]:
@@ -74,17 +93,19 @@ def _pseudo_label(model, payload: dict, scans: list[tuple], out: str | Path, bat
     truth = ConfusionMatrix(space.num_ids) if any(t for _, _, t in scans) else None
     with atomic_path(out) as tmp:
         (tmp / "labels").mkdir(parents=True)
+        (tmp / CONFIDENCE).mkdir()
         for start in range(0, len(scans), batch_size):
             chunk = scans[start:start + batch_size]
             clouds = [semantickitti.read_points(path) for _, path, _ in chunk]
             nonempty = [i for i, c in enumerate(clouds) if len(c)]
             preds = dict(zip(nonempty, predict_points(
                 model, [clouds[i] for i in nonempty], payload["voxel_size"], space.num_ids,
-                [chunk[i][1] for i in nonempty]))) if nonempty else {}
+                [chunk[i][1] for i in nonempty], confidence=True))) if nonempty else {}
             for i, (name, path, truth_path) in enumerate(chunk):
-                train_ids = preds.get(i, np.zeros(0, np.uint8))
+                train_ids, prob = preds.get(i, (np.zeros(0, np.uint8), np.zeros(0, np.float32)))
                 hist += np.bincount(train_ids, minlength=space.num_ids)
                 semantickitti.write_label(tmp / "labels" / f"{name}.label", semantickitti.to_raw_ids(train_ids))
+                np.round(prob * 255).astype(np.uint8).tofile(tmp / CONFIDENCE / f"{name}.bin")
                 record = {"name": name, "num_points": len(clouds[i])}
                 if truth_path:
                     semantic, _ = semantickitti.read_label(truth_path, num_points=len(clouds[i]))
@@ -128,7 +149,7 @@ def pool_records(pool_path: str | Path, label_dir: str | Path | None) -> list[di
         labels = Path(label_dir) / "labels" / f"{k:06d}.label"
         if not labels.is_file():
             raise InputError(labels, "pseudo-label file missing")
-        rec["labels"] = str(labels)
+        rec["labels"], rec["pseudo"] = str(labels), True
     return records
 
 
@@ -175,7 +196,8 @@ def generated_records(sample_dirs: list[str | Path], label_dirs: list[str | Path
             if n == 0:
                 empty += 1
                 continue
-            records.append({"points": str(scan), "labels": str(labels[scan.stem]), "format": "semantickitti"})
+            records.append({"points": str(scan), "labels": str(labels[scan.stem]), "format": "semantickitti",
+                            "pseudo": True})
     if limit is not None and len(records) + empty < limit:
         raise InputError(sample_dirs[-1] if sample_dirs else None,
                          f"the generated shards hold {len(records) + empty} scans, fewer than the {limit} asked for")

@@ -155,7 +155,8 @@ def train_segmentor(
     skip = checkpoint_iteration(resume_from) if resume_from else 0
 
     dataset = SegScanDataset(real + generated, space, settings["augmentation"], seed, settings.get("max_points"),
-                             lasermix_from=len(real) if lasermix else None)
+                             lasermix_from=len(real) if lasermix else None,
+                             min_confidence=mixing.get("min_confidence", 0.0))
     sampler = MixedBatchSampler(len(real), len(generated), mixing, sched["batch_size"], seed, skip=skip)
     collate = SegCollate(space.num_ids, settings["voxel_size"], settings["max_voxels"], seed)
     loader = torch.utils.data.DataLoader(
