@@ -331,6 +331,8 @@ def eval_sets(w):
     """--set NAME=DIR arguments and folders of an evaluation group."""
     if w.evalset == "corrupted":
         return {f"{c}/{s}": f"{CORRUPTED}/{c}/{s}" for c in CORRUPTIONS for s in SEVERITIES}
+    if w.evalset in CORRUPTIONS:  # one corruption at every severity
+        return {f"{w.evalset}/{s}": f"{CORRUPTED}/{w.evalset}/{s}" for s in SEVERITIES}
     if w.evalset == "weather":
         stf = EXPERIMENTS["semanticstf"]
         if stf["subsets"]:
@@ -422,17 +424,40 @@ def curve_evaluations():
 
 DECOMPOSITION = EXPERIMENTS["gda_decomposition"]
 DECOMPOSITION_SCANS = min(DECOMPOSITION["scans"], config["generator"]["sampling"]["scans_per_domain"])
-# Row of the decomposition study -> its run's wildcard (files ..._study-<row><N>_seed<k>.pt).
+WEATHER_STUDY = DECOMPOSITION["weather"]
+# Row of the decomposition study -> its run's wildcard (files ..._study-<row><N>_seed<k>.pt); the
+# generated row names its domain (gda-<domain>, an attempt gda-<domain>-<attempt>), the simulated
+# row of the weather study too (sim-<domain>).
 DECOMPOSITION_RUNS = {"supervised_only": "real", "real_truth": "truth", "real_pseudo": "pseudo",
-                      "generated": "gda", "lasermix": "lasermix"}
-# Study run wildcard -> the train-segmentor arguments it adds.
+                      "generated": f"gda-{DECOMPOSITION['domain']}", "lasermix": "lasermix"}
+# Kind of study run -> the train-segmentor arguments it adds.
 STUDY_FLAGS = {
     "real": "",
     "truth": "--pool {input.pool}",
     "pseudo": "--pool {input.pool} --pool-labels {input.labels}",
     "lasermix": "--pool {input.pool} --pool-labels {input.labels} --lasermix",
     "gda": "--samples {input.samples} --pseudo-labels {input.pseudo} --domains {domain} --max-generated {scans}",
+    "sim": "--pool {input.pool}/pool.json --pool-source simulated",
 }
+
+
+def study_domains():
+    """Domains of the study's generated rows: the main one and the weather study's."""
+    return [DECOMPOSITION["domain"], *([WEATHER_STUDY["domain"]] if WEATHER_STUDY["domain"] else [])]
+
+
+def study_row_pattern():
+    """Wildcard pattern of a study run's row."""
+    rows = ["real", "truth", "pseudo", "lasermix"]
+    rows += [f"gda-{d}-{a}" for d in study_domains() for a in DECOMPOSITION["attempts"]]
+    rows += [f"gda-{d}" for d in study_domains()]
+    rows += [f"sim-{WEATHER_STUDY['domain']}"] if WEATHER_STUDY["domain"] else []
+    return "|".join(rows)
+
+
+def simulated_pool_dir(domain, pct, scans):
+    """The pool's real scans run through a domain's scene (simulate-pool)."""
+    return f"{DATA}/subsets/simulated/{domain}_{pct}pct_pool{scans}"
 
 
 def study_settings(row):
@@ -441,15 +466,16 @@ def study_settings(row):
     from omnilidar.dicts import deep_merge
 
     merged = deep_merge({k: DOWNSTREAM[k] for k in (*TRAINING_KEYS, "mixing")}, DECOMPOSITION["training"])
-    if row.startswith("gda-"):
-        merged = deep_merge(merged, DECOMPOSITION["attempts"][row[len("gda-"):]])
+    parts = row.split("-")
+    if parts[0] == "gda" and len(parts) == 3:
+        merged = deep_merge(merged, DECOMPOSITION["attempts"][parts[2]])
     return json.dumps(merged, sort_keys=True)
 
 
-def study_row_pattern():
-    """Wildcard pattern of a study run's row: a base row, or gda-<attempt>."""
-    attempts = "|".join(f"gda-{name}" for name in DECOMPOSITION["attempts"])
-    return "|".join([*STUDY_FLAGS, *([attempts] if attempts else [])])
+def study_flags(w, input):
+    """train-segmentor arguments of a study run's row."""
+    parts = w.row.split("-")
+    return STUDY_FLAGS[parts[0]].format(input=input, scans=w.scans, domain=parts[1] if len(parts) > 1 else "")
 
 
 def pool_file(pct, scans):
@@ -465,30 +491,44 @@ def pool_labels_dir(pct, scans):
 def study_run_inputs(w):
     """Inputs of a study run (train_study): the subset, and what its row adds."""
     inputs = {"subset": f"{DATA}/subsets/semantickitti_{w.pct}pct.json"}
-    if w.row in ("truth", "pseudo", "lasermix"):
+    kind, domain = (w.row.split("-") + [None])[:2]
+    if kind in ("truth", "pseudo", "lasermix"):
         inputs["pool"] = pool_file(w.pct, w.scans)
-    if w.row in ("pseudo", "lasermix"):
+    if kind in ("pseudo", "lasermix"):
         inputs["labels"] = pool_labels_dir(w.pct, w.scans)
-    if w.row.split("-")[0] == "gda":
-        inputs["samples"] = curve_shards(DECOMPOSITION["domain"], w.scans)
-        inputs["pseudo"] = curve_pseudo_labels(DECOMPOSITION["domain"], w.scans)
+    if kind == "gda":
+        inputs["samples"] = curve_shards(domain, w.scans)
+        inputs["pseudo"] = curve_pseudo_labels(domain, w.scans)
+    if kind == "sim":
+        inputs["pool"] = simulated_pool_dir(domain, w.pct, w.scans)
     return inputs
+
+
+def study_evaluations(rows, evalset):
+    """Evaluations (on ``evalset``) of the study runs of ``rows`` for every backbone and seed."""
+    d = DECOMPOSITION
+    return [run_evaluation("semantickitti", b, d["percent"],
+                           f"study-{row}{DECOMPOSITION_SCANS}_seed{config['seed'] + k}", evalset)
+            for b in d["backbones"] for row in rows for k in range(d["seeds"])]
 
 
 def decomposition_evaluations():
     """Val evaluations of every row, backbone and seed of the decomposition study."""
-    d = DECOMPOSITION
-    return [run_evaluation("semantickitti", b, d["percent"],
-                           f"study-{row}{DECOMPOSITION_SCANS}_seed{config['seed'] + k}", "val")
-            for b in d["backbones"] for row in DECOMPOSITION_RUNS.values() for k in range(d["seeds"])]
+    return study_evaluations(DECOMPOSITION_RUNS.values(), "val")
 
 
-def attempt_evaluations():
-    """NAME=evaluation arguments of every attempt's runs (gda-<name> rows)."""
-    d = DECOMPOSITION
-    return [f"{name}=" + run_evaluation("semantickitti", b, d["percent"],
-                                        f"study-gda-{name}{DECOMPOSITION_SCANS}_seed{config['seed'] + k}", "val")
-            for name in d["attempts"] for b in d["backbones"] for k in range(d["seeds"])]
+def weather_evaluations():
+    """The weather study's rows on its corrupted sets: the shared real rows, the weather domain's
+    generated scans and the domain builder's version of the pool."""
+    d = WEATHER_STUDY["domain"]
+    rows = ["real", "truth", "pseudo", "lasermix", f"gda-{d}", f"sim-{d}"]
+    return study_evaluations(rows, WEATHER_STUDY["corruption"])
+
+
+def attempt_evaluations(domain, evalset):
+    """NAME=evaluation arguments of every attempt's runs (gda-<domain>-<name> rows)."""
+    return [f"{name}={path}" for name in DECOMPOSITION["attempts"]
+            for path in study_evaluations([f"gda-{domain}-{name}"], evalset)]
 
 
 # Detection helpers (rules/detection.smk), after what they read.

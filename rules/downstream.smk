@@ -306,7 +306,7 @@ rule evaluate_segmentor:
     wildcard_constraints:
         dataset=r"semantickitti|nuscenes",
         run=r"(minkunet|spvcnn)_\d+pct_[a-z0-9_+\-]+",
-        evalset=r"val|corrupted|weather",
+        evalset=r"val|corrupted|weather|" + "|".join(CORRUPTIONS),
     params:
         settings=downstream_settings("backend", "device", "evaluation"),
         sets=lambda w: " ".join(f"--set {n}={d}" for n, d in eval_sets(w).items()),
@@ -553,8 +553,7 @@ rule train_study:
         settings=lambda w: study_settings(w.row),
         seed=lambda w: int(w.seed),
         work_dir=lambda w, output: job_work_dir(output[0]),
-        flags=lambda w, input: STUDY_FLAGS[w.row.split("-")[0]].format(input=input, scans=w.scans,
-                                                                      domain=DECOMPOSITION["domain"]),
+        flags=study_flags,
         code=code("train-segmentor"),
     log:
         f"logs/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.log",
@@ -576,7 +575,7 @@ rule gda_decomposition:
     with the labeler's labels, + generated scans, + LaserMix, per backbone over several seeds."""
     input:
         evaluations=decomposition_evaluations(),
-        attempts=[a.split("=", 1)[1] for a in attempt_evaluations()],
+        attempts=[a.split("=", 1)[1] for a in attempt_evaluations(DECOMPOSITION["domain"], "val")],
         pool_labels=pool_labels_dir(DECOMPOSITION["percent"], DECOMPOSITION_SCANS),
         labeler=LABELER_VAL,
     output:
@@ -587,7 +586,7 @@ rule gda_decomposition:
         settings=settings("downstream", drop=("det",)),
         seed=config["seed"],
         data_source=data_source("semantickitti"),
-        attempts=" ".join(f"--attempt {a}" for a in attempt_evaluations()),
+        attempts=" ".join(f"--attempt {a}" for a in attempt_evaluations(DECOMPOSITION["domain"], "val")),
         code=result_code("gda-decomposition"),
     log:
         "logs/downstream/gda_decomposition.log",
@@ -604,6 +603,71 @@ rule gda_decomposition:
             "--labeler-evaluation {input.labeler} --settings {params.settings:q} --seed {params.seed} "
             "--data-source {params.data_source:q} --out {output.json} --figure {output.figure} > {log} 2>&1"
         )
+
+
+rule simulate_pool:
+    """The decomposition pool's real scans run through a domain's scene, labels carried (the
+    physically simulated augmentation a generator must beat)."""
+    input:
+        index=f"{DATA}/index/semantickitti.json",
+        pool=pool_file("{pct}", "{scans}"),
+    output:
+        directory(simulated_pool_dir("{domain}", "{pct}", "{scans}")),
+    wildcard_constraints:
+        domain="|".join(DOMAIN_NAMES),
+        pct=r"\d+",
+        scans=r"[1-9]\d*",
+    params:
+        settings=lambda w: domain_settings(w.domain),
+        seed=config["seed"],
+        code=lambda w: code("simulate-pool", exclude=tuple(
+            f"omnilidar.domains.effects.{m}" for m in EFFECT_MODULES
+            if m not in {e["name"] for e in config["domains"][w.domain]["effects"]})),
+    log:
+        "logs/downstream/simulated_pool_{domain}_{pct}pct_{scans}.log",
+    conda:
+        ENV
+    resources:
+        **job_resources("make_subset"),
+    shell:
+        "omnilidar simulate-pool {wildcards.domain} --index {input.index} --pool {input.pool} "
+        "--settings {params.settings:q} --seed {params.seed} --out {output} > {log} 2>&1"
+
+
+if WEATHER_STUDY["domain"]:
+
+    rule gda_decomposition_weather:
+        """The decomposition for a weather domain, scored on its corrupted val sets: do the generator's
+        weather scans carry to the downstream model, against the domain builder's simulation of them?"""
+        input:
+            evaluations=weather_evaluations(),
+            pool_labels=pool_labels_dir(DECOMPOSITION["percent"], DECOMPOSITION_SCANS),
+            labeler=LABELER_VAL,
+        output:
+            json=f"results/gda_decomposition_{WEATHER_STUDY['domain']}.json",
+            table=f"results/tables/gda_decomposition_{WEATHER_STUDY['domain']}.html",
+            figure=f"results/figures/gda_decomposition_{WEATHER_STUDY['domain']}.png",
+        params:
+            settings=settings("downstream", drop=("det",)),
+            seed=config["seed"],
+            data_source=data_source("semantickitti"),
+            code=result_code("gda-decomposition"),
+        log:
+            "logs/downstream/gda_decomposition_weather.log",
+        benchmark:
+            "benchmarks/out/downstream/gda_decomposition_weather.tsv"
+        conda:
+            ENV
+        resources:
+            **job_resources("gda_result"),
+        shell:
+            with_table(
+                "omnilidar gda-decomposition --evaluations {input.evaluations} --evalset "
+                f"{WEATHER_STUDY['corruption']} --domain {WEATHER_STUDY['domain']} "
+                "--pool-labels {input.pool_labels} --labeler-evaluation {input.labeler} --settings {params.settings:q} "
+                "--seed {params.seed} --data-source {params.data_source:q} --out {output.json} "
+                "--figure {output.figure} > {log} 2>&1"
+            )
 
 
 rule segmentation:

@@ -213,7 +213,25 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
         "generated_share: 0.25}}}}}}\n")
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
                     "--configfile", "config/config.yaml", "attempt.yaml").stdout
-    tried = [line for line in out.splitlines() if "omnilidar train-segmentor" in line and "study-gda-share25" in line]
+    tried = [line for line in out.splitlines()
+             if "omnilidar train-segmentor" in line and "study-gda-vehicle-share25" in line]
     assert len(tried) == 6 and all('"generated_share": 0.25' in line and "--max-generated 16" in line for line in tried)
     result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
     assert result.count("--attempt share25=") == 6
+
+
+def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simulated_fog(workdir):
+    """results/gda_decomposition_fog.json: the four real rows are the main study's runs scored on
+    the fog corrupted sets; the generated row takes Fog samples, the simulated row the pool through
+    the fog scene (built once)."""
+    from workflow_helpers import snakemake
+
+    jobs = _jobs(workdir, "results/gda_decomposition.json", "results/gda_decomposition_fog.json")
+    assert jobs["train_study"] == (5 + 2) * 2 * 3  # real, truth, pseudo, LaserMix, GDA vehicle; GDA fog, simulated fog
+    assert jobs["evaluate_segmentor"] == 30 + 36 and jobs["simulate_pool"] == 1
+    assert jobs["build_corrupted"] == 3  # fog at three severities, nothing else
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition_fog.json").stdout
+    assert "--pool data/subsets/simulated/fog_1pct_pool16/pool.json --pool-source simulated" in out
+    assert "--domains fog --max-generated 16" in out
+    result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
+    assert "--evalset fog --domain fog" in result and "minkunet_1pct_study-truth16_seed0.fog.json" in result

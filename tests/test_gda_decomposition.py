@@ -237,3 +237,51 @@ def test_attempts_are_scored_against_the_plain_generated_row():
     assert study["attempts"]["confident"]["gain_over_supervised"]["mean"] == pytest.approx(0.01)
     with pytest.raises(InputError, match="seeds"):
         dc.decomposition(evals, {"confident": tried[:1]})
+
+
+def test_simulated_pool_runs_the_pool_through_the_domain_scene_with_labels(study_tree, tmp_path):
+    root, settings = study_tree
+    out = tmp_path / "fog_pool"
+    assert main(["simulate-pool", "fog", "--index", str(root / "index.json"), "--pool", str(root / "pool.json"),
+                 "--settings", "{}", "--seed", "0", "--out", str(out)]) == 0
+    pool = subsets.read_subset(out / "pool.json")
+    real = subsets.read_subset(root / "pool.json")
+    assert pool["num_scans"] == real["num_scans"] == 3 and pool["simulated"]["domain"] == "fog"
+    side = json.loads((out / "sidecar.json").read_text())
+    assert all(s["effects"][0]["name"] == "fog" for s in side["scans"])
+    for entry, source in zip(pool["entries"], real["entries"]):
+        points = semantickitti.read_points(entry["points"])
+        labels = semantickitti.read_label(entry["labels"])[0]
+        assert len(labels) == len(points) and entry["source"] == source["points"]
+    records = pool_records(out / "pool.json", None)
+    assert len(records) == 3
+    # Same seed, same scans; the run is a simulated row.
+    again = tmp_path / "again"
+    assert main(["simulate-pool", "fog", "--index", str(root / "index.json"), "--pool", str(root / "pool.json"),
+                 "--settings", "{}", "--seed", "0", "--out", str(again)]) == 0
+    assert (again / "velodyne" / "000001.bin").read_bytes() == (out / "velodyne" / "000001.bin").read_bytes()
+    run = tmp_path / "sim.pt"
+    assert main(["train-segmentor", "--backbone", "minkunet", "--subset", str(root / "subset.json"),
+                 "--settings", settings, "--work-dir", str(tmp_path / "work"), "--out", str(run),
+                 "--pool", str(out / "pool.json"), "--pool-source", "simulated"]) == 0
+    assert torch.load(run, weights_only=True)["train"]["info"]["role"] == "simulated"
+
+
+def test_weather_study_scores_the_corruption_averaged_over_severities():
+    def doc(role, seed, by_severity):
+        d = _seeded("minkunet", role, 0.5, seed)
+        names = list(d["sets"]["val"]["iou"])
+        for sev, m in by_severity.items():
+            d["sets"][f"fog/{sev}"] = {"miou": m, "iou": {n: m for n in names}, "miou_nanmean": m,
+                                       "accuracy": 0.9, "num_scans": 2}
+        return d
+    base = {"supervised_only": 0.10, "real_truth": 0.20, "real_pseudo": 0.16, "gda": 0.12, "lasermix": 0.15,
+            "simulated": 0.22}
+    evals = [doc(role, s, {"light": m + 0.01 * s, "heavy": m - 0.02 + 0.01 * s})
+             for role, m in base.items() for s in range(2)]
+    study = dc.decomposition(evals, evalset="fog")["minkunet"]
+    assert list(study["rows"]) == [*dc.ROWS, "simulated"] and study["evalset"] == "fog"
+    assert study["rows"]["simulated"]["miou"] == pytest.approx([0.21, 0.22])
+    assert study["links"]["vs_simulation"]["mean"] == pytest.approx(0.10)
+    with pytest.raises(InputError, match="no snow/<severity> sets"):
+        dc.decomposition(evals, evalset="snow")

@@ -14,6 +14,9 @@ def add_arguments(parser) -> None:
     seed_arg(parser)
     parser.add_argument("--evaluations", nargs="+", required=True,
                         help="evaluate-segmentor outputs of every row, backbone and seed")
+    parser.add_argument("--evalset", default="val",
+                        help="score on: val, or a corruption whose <corruption>/<severity> sets are averaged")
+    parser.add_argument("--domain", help="domain of the generated row (default: the study's domain)")
     parser.add_argument("--attempt", action="append", default=[], metavar="NAME=EVALUATION",
                         help="evaluation of one run of a remedy tried on the generated row (repeatable)")
     parser.add_argument("--pool-labels", required=True, help="the labeler's labels of the real pool (their accuracy)")
@@ -48,11 +51,12 @@ def run(args) -> int:
     unknown = set(attempts) - set(requested["attempts"])
     if unknown:
         raise InputError(None, f"attempt(s) {', '.join(sorted(unknown))} are not in experiments.gda_decomposition.attempts")
-    studies = dc.decomposition(evals, attempts)
+    studies = dc.decomposition(evals, attempts, args.evalset)
     pool = read_json(Path(args.pool_labels) / SIDECAR, "pseudo-label folder has no sidecar.json")
     first = evals[0]
     setup = {"dataset": first["train"]["info"]["dataset"], "percent": first["train"]["info"]["percent"],
-             "scans": requested["scans"], "domain": requested["domain"], "label_space": first["label_space"],
+             "scans": requested["scans"], "domain": args.domain or requested["domain"], "evalset": args.evalset,
+             "label_space": first["label_space"],
              # The regime every run of the study trained with: downstream keys + the study's overrides.
              "training": deep_merge({k: settings[k] for k in ("schedule", "voxel_size", "max_voxels", "max_points",
                                                               "models", "augmentation", "mixing")},
@@ -62,12 +66,12 @@ def run(args) -> int:
                  (e["train"]["info"]["pool"] for e in evals if e["train"]["info"].get("pool")), None),
              "simulated_row": ("the domain builder's scans of the vehicle domain are the real scans (its scene "
                                "applies no effect): the simulated row is the real_truth row")
-             if requested["domain"] == "vehicle" else "not run for this domain yet"}
+             if (args.domain or requested["domain"]) == "vehicle" else "the pool through the domain's scene"}
     timings = {f"train_{e['model']['backbone']}_{e['train']['info']['role']}_seed{e['seed']}": e["train"]["seconds"]
                for e in evals}
     doc = envelope(
-        "gda_decomposition", "gda-decomposition", args.settings, {"seed": args.seed}, timings, args.data_source,
-        setup=setup, rows=list(dc.ROWS), links=dc.LINKS, attempts=requested["attempts"], backbones=studies,
+        "gda_decomposition" if args.evalset == "val" else f"gda_decomposition_{args.domain}", "gda-decomposition", args.settings, {"seed": args.seed}, timings, args.data_source,
+        setup=setup, rows=list(next(iter(studies.values()))["rows"]) if studies else [], links=dc.LINKS, attempts=requested["attempts"], backbones=studies,
         labeler=labeler_quality(read_evaluation(args.labeler_evaluation)),
         pool_pseudo_labels_against_truth=pool.get("accuracy_against_truth"),
         miou_convention="miou: semantic-kitti-api (absent classes count as 0)",
@@ -76,8 +80,7 @@ def run(args) -> int:
     dc.decomposition_figure(args.figure, doc)
     for backbone, study in studies.items():
         print(f"{backbone} (seeds {study['seeds']}):")
-        for row in dc.ROWS:
-            r = study["rows"][row]
+        for row, r in study["rows"].items():
             std = f" +- {100 * r['miou_std']:.2f}" if r["miou_std"] is not None else ""
             print(f"  {dc.ROW_LABELS[row]:<28} mIoU {100 * r['miou_mean']:.2f}{std}")
         for name, r in study["attempts"].items():

@@ -22,6 +22,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--pool", help="further real scans (make-subset --exclude) in place of generated ones: "
                                        "with their true labels, or with --pool-labels")
     parser.add_argument("--pool-labels", help="the labeler's labels of the pool (pseudo-label --pool)")
+    parser.add_argument("--pool-source", choices=["real", "simulated"], default="real",
+                        help="simulated: the pool is real scans run through a domain's scene (simulate-pool)")
     parser.add_argument("--lasermix", action="store_true",
                         help="LaserMix each pool scan (with --pool-labels) with a real labelled scan")
     parser.add_argument("--work-dir", default="work/segmentation", help="resumable training state (undeclared)")
@@ -56,6 +58,10 @@ def run(args) -> int:
         if read_subset(args.pool)["dataset"] != dataset:
             raise InputError(args.pool, f"pool and subset {args.subset} come from different datasets")
         role = "lasermix" if args.lasermix else "real_pseudo" if args.pool_labels else "real_truth"
+        if args.pool_source == "simulated":
+            if args.pool_labels or args.lasermix:
+                raise InputError(args.pool, "a simulated pool trains on its carried labels (no --pool-labels, --lasermix)")
+            role = "simulated"
     else:
         generated, empty = generated_records(args.samples, args.pseudo_labels, limit=args.max_generated)
         if args.samples and not generated:

@@ -8,6 +8,7 @@ the same schedule and seeds; only what is added differs (N scans each):
     real_pseudo       the same N real scans labelled by the labeler (what pseudo-labelling costs)
     generated         N generated scans of the domain labelled by the labeler (the method)
     lasermix          the same N real scans LaserMix-ed with the labelled ones, labeler's labels
+    simulated         (weather study) the N real scans through the domain's scene, labels carried
 
 Differences between rows are taken seed by seed (rows share their seeds), so
 the spread of a difference is not the sum of two rows' spreads. What each link
@@ -16,6 +17,7 @@ costs:
     pseudo_labels     real_truth - real_pseudo   (the labeler's errors on real scans)
     samples           real_pseudo - generated    (generated instead of real scans, same labeler)
     vs_lasermix       lasermix - generated       (the semi-supervised alternative on the same labeler)
+    vs_simulation     simulated - generated      (physical simulation against the generator's scans)
 """
 
 from __future__ import annotations
@@ -28,13 +30,30 @@ from omnilidar.downstream.seg.experiments import runs_by_seed, seed_statistics
 from omnilidar.errors import InputError
 
 ROWS = ("supervised_only", "real_truth", "real_pseudo", "generated", "lasermix")
+SIMULATED = "simulated"  # the weather study's extra row: the pool through the domain builder, labels carried
 ROLE_OF_ROW = {"supervised_only": "supervised_only", "real_truth": "real_truth", "real_pseudo": "real_pseudo",
-               "generated": "gda", "lasermix": "lasermix"}
+               "generated": "gda", "lasermix": "lasermix", SIMULATED: "simulated"}
 ROW_LABELS = {"supervised_only": "supervised only", "real_truth": "+N real, true labels",
               "real_pseudo": "+N real, labeler's labels", "generated": "+N generated (GDA)",
-              "lasermix": "+N real, LaserMix"}
+              "lasermix": "+N real, LaserMix", SIMULATED: "+N real, simulated domain"}
 LINKS = {"pseudo_labels": ("real_truth", "real_pseudo"), "samples": ("real_pseudo", "generated"),
-         "vs_lasermix": ("lasermix", "generated")}
+         "vs_lasermix": ("lasermix", "generated"), "vs_simulation": (SIMULATED, "generated")}
+
+
+def study_rows(roles) -> tuple[str, ...]:
+    """The rows a study has: the five, plus the simulated row when its runs are given."""
+    return ROWS + ((SIMULATED,) if ROLE_OF_ROW[SIMULATED] in roles else ())
+
+
+def pooled_set(doc: dict, prefix: str) -> dict:
+    """Scores of the sets named ``prefix/<severity>`` of an evaluation, averaged (mIoU, per-class IoU)."""
+    sets = [v for k, v in doc["sets"].items() if k.startswith(prefix + "/")]
+    if not sets:
+        raise InputError(doc["_path"], f"holds no {prefix}/<severity> sets")
+    classes = sets[0]["iou"]
+    return {"miou": float(np.mean([s["miou"] for s in sets])),
+            "iou": {c: float(np.mean([s["iou"][c] for s in sets])) for c in classes},
+            "sets": sorted(k for k in doc["sets"] if k.startswith(prefix + "/"))}
 
 
 def _paired(a: list[float], b: list[float]) -> dict:
@@ -44,15 +63,17 @@ def _paired(a: list[float], b: list[float]) -> dict:
             "std": float(diff.std(ddof=1)) if len(diff) > 1 else None}
 
 
-def backbone_study(roles: dict[str, list[dict]], backbone: str) -> dict:
-    """Rows, gaps to supervised-only and link costs of one backbone's runs (role -> docs by seed)."""
-    missing = [row for row in ROWS if ROLE_OF_ROW[row] not in roles]
+def backbone_study(roles: dict[str, list[dict]], backbone: str, evalset: str = "val") -> dict:
+    """Rows, gaps to supervised-only and link costs of one backbone's runs (role -> docs by seed),
+    scored on ``evalset``."""
+    names = study_rows(roles)
+    missing = [row for row in names if ROLE_OF_ROW[row] not in roles]
     if missing:
         raise InputError(None, f"{backbone}: no evaluation of row(s) {', '.join(missing)}")
     rows, seeds = {}, None
-    for row in ROWS:
+    for row in names:
         docs = roles[ROLE_OF_ROW[row]]
-        stats = seed_statistics(docs)
+        stats = seed_statistics(docs, evalset)
         if seeds is None:
             seeds = stats["seeds"]
         elif stats["seeds"] != seeds:
@@ -62,14 +83,16 @@ def backbone_study(roles: dict[str, list[dict]], backbone: str) -> dict:
                      "iterations": train["iterations"], "train_seconds": [d["train"]["seconds"] for d in docs],
                      "checkpoints": [d["checkpoint"] for d in docs]}
     base = rows["supervised_only"]["miou"]
-    for row in ROWS[1:]:
+    for row in names[1:]:
         rows[row]["gain_over_supervised"] = _paired(rows[row]["miou"], base)
     spread = max(rows[r]["miou_std"] or 0.0 for r in ("supervised_only", "real_truth"))
     ceiling = rows["real_truth"]["gain_over_supervised"]["mean"]
     generated = rows["generated"]["gain_over_supervised"]["mean"]
     return {
         "seeds": seeds, "rows": rows,
-        "links": {name: _paired(rows[a]["miou"], rows[b]["miou"]) for name, (a, b) in LINKS.items()},
+        "evalset": evalset,
+        "links": {name: _paired(rows[a]["miou"], rows[b]["miou"]) for name, (a, b) in LINKS.items()
+                  if a in rows and b in rows},
         # Can this regime answer the question? The ceiling must clear supervised-only by 2 std.
         "ceiling_clears_two_std": bool(len(seeds) > 1 and ceiling > 2 * spread),
         # Where the method lands between supervised-only (0) and the ceiling (1).
@@ -87,7 +110,7 @@ def costliest_link(study: dict) -> str | None:
 def attempt_record(study: dict, docs: list[dict], name: str, backbone: str) -> dict:
     """One remedy tried on the generated row: its seeds' scores and its gains, seed by seed, over
     the plain generated row and over supervised-only."""
-    stats = seed_statistics(docs)
+    stats = seed_statistics(docs, study["evalset"])
     if stats["seeds"] != study["seeds"]:
         raise InputError(docs[0]["_path"], f"{backbone} attempt {name}: seeds {stats['seeds']} differ from "
                                            f"{study['seeds']}")
@@ -96,12 +119,17 @@ def attempt_record(study: dict, docs: list[dict], name: str, backbone: str) -> d
             "gain_over_supervised": _paired(stats["miou"], study["rows"]["supervised_only"]["miou"])}
 
 
-def decomposition(evaluations: list[dict], attempts: dict[str, list[dict]] | None = None) -> dict:
+def decomposition(evaluations: list[dict], attempts: dict[str, list[dict]] | None = None,
+                  evalset: str = "val") -> dict:
     """backbone -> study, from the evaluate-segmentor outputs of every row, backbone and seed, and
-    of every attempt (name -> its runs' outputs)."""
+    of every attempt (name -> its runs' outputs). ``evalset`` other than val: the sets
+    ``evalset/<severity>`` of each evaluation, averaged (a corruption at every severity)."""
+    if evalset != "val":
+        for doc in evaluations + [d for docs in (attempts or {}).values() for d in docs]:
+            doc["sets"][evalset] = pooled_set(doc, evalset)
     out = {}
     for backbone, roles in sorted(runs_by_seed(evaluations).items()):
-        study = backbone_study(roles, backbone)
+        study = backbone_study(roles, backbone, evalset)
         tried = {}
         for name, docs in (attempts or {}).items():
             mine = sorted((d for d in docs if d["model"]["backbone"] == backbone), key=lambda d: d["seed"])
@@ -124,9 +152,9 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
 
     studies = doc["backbones"]
     fig, axes = plt.subplots(1, len(studies), figsize=(5.2 * len(studies), 4.0), squeeze=False)
-    colors = ["#7f7f7f", "#2ca02c", "#98df8a", "#1f77b4", "#ff7f0e"]
+    colors = ["#7f7f7f", "#2ca02c", "#98df8a", "#1f77b4", "#ff7f0e", "#9467bd"]
     for ax, (backbone, study) in zip(axes[0], studies.items()):
-        bars = [(ROW_LABELS[r], study["rows"][r]) for r in ROWS]
+        bars = [(ROW_LABELS[r], study["rows"][r]) for r in study["rows"]]
         bars += [(f"GDA, {name}", rec) for name, rec in study.get("attempts", {}).items()]
         x = np.arange(len(bars))
         means = [100 * rec["miou_mean"] for _, rec in bars]
@@ -138,13 +166,13 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
             ax.plot(np.full(len(seeds), x[i]) + np.linspace(-0.12, 0.12, len(seeds)), seeds, "k.", ms=4)
         ax.axhline(means[0], color="k", ls="--", lw=0.8)
         ax.set_xticks(x, [label for label, _ in bars], rotation=25, ha="right", fontsize=7)
-        ax.set_ylabel("val mIoU (%)")
+        ax.set_ylabel(f"{study['evalset']} mIoU (%)" + (" (mean over severities)" if study["evalset"] != "val" else ""))
         n = len(study["seeds"])
         ax.set_title(f"{backbone} ({'mean +- std over ' + str(n) + ' seeds' if n > 1 else 'one seed'})", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
     setup = doc["setup"]
     fig.suptitle(f"GDA decomposition: {setup['percent']:g} % labels + N = {setup['scans']} scans "
-                 f"({setup['domain']} samples for GDA)", fontsize=10)
+                 f"({setup['domain']} samples for GDA, scored on {setup['evalset']})", fontsize=10)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
