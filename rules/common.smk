@@ -413,13 +413,32 @@ def curve_pseudo_labels(name, count):
     return pseudo_label_shards(name)[: _shards_holding(count)]
 
 
+CURVE_SERIES_ROW = {"real_truth": "truth", "real_pseudo": "pseudo"}
+
+
+def curve_pool_size():
+    """Scans of the pool the curve's real series draw their first N from (its largest count)."""
+    return max(curve_counts())
+
+
 def curve_evaluations():
     """Val evaluations of the curve's runs by count: 0 is the supervised-only run that
-    results/semkitti_{pct}pct.json compares (reused), N the run on the first N scans."""
+    results/semkitti_{pct}pct.json compares (reused), N the run on the first N scans (generated,
+    and for each real series the first N pool scans)."""
     curve = EXPERIMENTS["gda_curve"]
     runs = ["real" if n == 0 else f"gda{n}-{curve['domain']}" for n in curve_counts()]
+    runs += [f"pool{curve_pool_size()}-{CURVE_SERIES_ROW[s]}{n}" for s in curve["real_series"]
+             for n in curve_counts() if n > 0]
     return [run_evaluation("semantickitti", curve["backbone"], curve["percent"], r + seed_suffix(k), "val")
             for r in runs for k in range(curve["seeds"])]
+
+
+def curve_pool_inputs(w):
+    """Inputs of a curve run on pool scans: the subset, the pool and, for pseudo, its labels."""
+    inputs = {"subset": f"{DATA}/subsets/semantickitti_{w.pct}pct.json", "pool": pool_file(w.pct, w.pool)}
+    if w.row == "pseudo":
+        inputs["labels"] = pool_labels_dir(w.pct, w.pool)
+    return inputs
 
 
 DECOMPOSITION = EXPERIMENTS["gda_decomposition"]

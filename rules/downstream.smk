@@ -294,6 +294,66 @@ use rule train_gda_curve as train_gda_curve_seed with:
         f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.tsv"
 
 
+rule train_curve_pool:
+    """A point of the GDA curve's real series: the real label subset plus the first N scans of the
+    real pool (P scans outside the subset) with their true labels (truth) or the labeler's (pseudo)."""
+    input:
+        unpack(curve_pool_inputs),
+    output:
+        f"{SEG}/semantickitti/{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}.pt",
+    wildcard_constraints:
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+        pool=r"[1-9]\d*",
+        row=r"truth|pseudo",
+        scans=r"[1-9]\d*",
+    params:
+        settings=downstream_settings(*TRAINING_KEYS, "mixing"),
+        seed=config["seed"],
+        work_dir=lambda w, output: job_work_dir(output[0]),
+        labels=lambda w, input: f"--pool-labels {input.labels}" if w.row == "pseudo" else "",
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}.tsv"
+    conda:
+        ENV
+    threads: 1
+    resources:
+        **job_resources("train_gda_curve"),
+    shell:
+        "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
+        "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
+        "--threads {threads} --out {output} --pool {input.pool} {params.labels} --max-pool {wildcards.scans} "
+        "> {log} 2>&1"
+
+
+use rule train_curve_pool as train_curve_pool_seed with:
+    output:
+        f"{SEG}/semantickitti/{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}_seed{{seed}}.pt",
+    wildcard_constraints:
+        backbone=r"minkunet|spvcnn",
+        pct=r"\d+",
+        pool=r"[1-9]\d*",
+        row=r"truth|pseudo",
+        scans=r"[1-9]\d*",
+        seed=r"\d+",
+    params:
+        settings=downstream_settings(*TRAINING_KEYS, "mixing"),
+        seed=lambda w: int(w.seed),
+        work_dir=lambda w, output: job_work_dir(output[0]),
+        labels=lambda w, input: f"--pool-labels {input.labels}" if w.row == "pseudo" else "",
+        code=code("train-segmentor"),
+    log:
+        f"logs/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}_seed{{seed}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}_seed{{seed}}.tsv"
+
+
+ruleorder: train_curve_pool_seed > train_curve_pool
+
+
 rule evaluate_segmentor:
     """Per-class IoU, mIoU (semantic-kitti-api and nanmean) and accuracy of one run on the
     official val split (val), plus the corrupted sets (corrupted) or weather subsets (weather)."""

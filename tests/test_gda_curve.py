@@ -337,3 +337,40 @@ def test_curve_counts_are_capped_by_what_is_sampled_and_checked(workdir, tmp_pat
         capped.write_text(yaml.safe_dump(cfg))
         out = snakemake(workdir, "--dry-run", "results/gda_curve.json", "--configfile", str(capped), check=False)
         assert out.returncode != 0 and word in out.stdout + out.stderr
+
+
+def test_gda_curve_draws_real_series_beside_the_generated_one(curve_inputs, capsys):
+    """--max-pool runs (real pool scans with true or the labeler's labels) become the curve's
+    real_series, by N and seed, and the figure's extra lines."""
+    root, evals, samples, benches, pseudo = curve_inputs
+
+    def pool_run(name, role, n, miou, seed=0):
+        path = _evaluation(root / name, role, None, miou, 9.0, n, seed=seed)
+        doc = json.loads(Path(path).read_text())
+        doc["train"]["info"]["max_pool"] = n
+        Path(path).write_text(json.dumps(doc))
+        return path
+
+    real = [pool_run("t2.val.json", "real_truth", 2, 0.40), pool_run("t4.val.json", "real_truth", 4, 0.50),
+            pool_run("p2.val.json", "real_pseudo", 2, 0.26), pool_run("p4.val.json", "real_pseudo", 4, 0.28)]
+    assert main(_curve_args(root, evals + real, samples, benches, pseudo)) == 0
+    doc = read_curve(root / "curve.json")
+    assert [r["generated_scans"] for r in doc["rows"]] == [0, 2, 4]  # the generated curve is unchanged
+    series = doc["real_series"]
+    assert [(p["scans"], p["miou"]) for p in series["real_truth"]] == [(2, 0.40), (4, 0.50)]
+    assert [p["miou"] for p in series["real_pseudo"]] == [0.26, 0.28]
+    assert "real_truth: 2 scans 40.00, 4 scans 50.00" in capsys.readouterr().out
+    # A run that is neither: one clear error.
+    bad = pool_run("bad.val.json", "real_truth", 0, 0.1)
+    assert main(_curve_args(root, evals + [bad], samples, benches, pseudo)) == 2
+
+
+def test_curve_dag_trains_the_real_series_on_the_first_n_pool_scans(workdir):
+    jobs = planned_jobs(workdir, "results/gda_curve.json")
+    # Default counts 4, 8, 16; both real series; the pool (16 scans) made and labelled once.
+    assert jobs["train_curve_pool"] == 6 and jobs["make_pool"] == jobs["pseudo_label_pool"] == 1
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_curve.json").stdout
+    assert "--pool data/subsets/semantickitti_1pct_pool16.json  --max-pool 4" in out
+    assert "--pool-labels data/pseudo_labels/pool/semantickitti_1pct_pool16 --max-pool 8" in out
+    assert "minkunet_1pct_pool16-pseudo16.val.json" in next(
+        line for line in out.splitlines() if "omnilidar gda-curve" in line)

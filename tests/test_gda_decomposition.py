@@ -285,3 +285,14 @@ def test_weather_study_scores_the_corruption_averaged_over_severities():
     assert study["links"]["vs_simulation"]["mean"] == pytest.approx(0.10)
     with pytest.raises(InputError, match="no snow/<severity> sets"):
         dc.decomposition(evals, evalset="snow")
+
+
+def test_max_pool_takes_the_first_n_pool_scans(study_tree, tmp_path):
+    root, settings = study_tree
+    args = ["train-segmentor", "--backbone", "minkunet", "--subset", str(root / "subset.json"),
+            "--settings", settings, "--work-dir", str(tmp_path / "work"), "--pool", str(root / "pool.json")]
+    assert main([*args, "--out", str(tmp_path / "two.pt"), "--max-pool", "2"]) == 0
+    train = torch.load(tmp_path / "two.pt", weights_only=True)["train"]
+    assert train["num_generated"] == 2 and train["info"]["max_pool"] == 2
+    assert main([*args, "--out", str(tmp_path / "four.pt"), "--max-pool", "4"]) != 0  # the pool holds 3
+    assert not (tmp_path / "four.pt").exists()

@@ -12,7 +12,8 @@ def add_arguments(parser) -> None:
     settings_arg(parser)
     seed_arg(parser)
     parser.add_argument("--evaluations", nargs="+", required=True,
-                        help="evaluate-segmentor outputs: the supervised-only run and --max-generated runs")
+                        help="evaluate-segmentor outputs: the supervised-only run, --max-generated runs and "
+                             "the real series' --max-pool runs")
     parser.add_argument("--samples", nargs="*", default=[], help="sample shards the runs drew from, in order")
     parser.add_argument("--pseudo-labels", nargs="*", default=[], help="their pseudo-label shards, same order")
     parser.add_argument("--labeler-evaluation", help="evaluate-segmentor output of the labeler (its own val scores)")
@@ -33,6 +34,10 @@ def run(args) -> int:
     settings = validate(dict(args.settings), "downstream.schema.yaml", source="--settings")
     requested = settings["experiments"]["gda_curve"]
     evals = [read_evaluation(p) for p in args.evaluations]
+    is_real = [e["train"].get("info", {}).get("role") in gc.SERIES_ROLES for e in evals]
+    real = [e for e, r in zip(evals, is_real) if r]
+    evals = [e for e, r in zip(evals, is_real) if not r]
+    series = gc.series_rows(real)
     gda = any(e["train"].get("info", {}).get("role") == "gda" for e in evals)
     per_scan, measured = 0.0, 0
     if gda:
@@ -61,11 +66,13 @@ def run(args) -> int:
         sampled_scans_measured=measured, sampling_seconds_source=(
             "sampling-loop seconds / generated scans, from each sample shard's timing.json"),
         total_note=gc.TOTAL_NOTE, miou_convention="miou: semantic-kitti-api (absent classes count as 0)",
-        rows=rows,
+        rows=rows, real_series=series,
         **({"labeler": labeler_quality(read_evaluation(args.labeler_evaluation))} if args.labeler_evaluation else {}),
     )
     write_text_atomic(args.out, json.dumps(doc, indent=1))
     gc.curve_figure(args.figure, doc)
+    for role, points in series.items():
+        print(f"{role}: " + ", ".join(f"{p['scans']} scans {100 * p['miou']:.2f}" for p in points))
     for r in rows:
         print(f"{r['generated_scans']:>6} generated: mIoU {100 * r['miou']:.2f}, {r['total_seconds']:.1f} s "
               f"(train {r['train_seconds']:.1f}, sampling {r['sampling_seconds']:.1f}, "

@@ -22,6 +22,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--pool", help="further real scans (make-subset --exclude) in place of generated ones: "
                                        "with their true labels, or with --pool-labels")
     parser.add_argument("--pool-labels", help="the labeler's labels of the pool (pseudo-label --pool)")
+    parser.add_argument("--max-pool", type=int, default=None, metavar="N",
+                        help="use only the first N scans of the pool (default all)")
     parser.add_argument("--pool-source", choices=["real", "simulated"], default="real",
                         help="simulated: the pool is real scans run through a domain's scene (simulate-pool)")
     parser.add_argument("--lasermix", action="store_true",
@@ -49,12 +51,17 @@ def run(args) -> int:
         raise InputError(None, "--max-generated needs generated --samples")
     if args.pool and args.samples:
         raise InputError(args.pool, "give --pool or generated --samples, not both")
-    if (args.pool_labels or args.lasermix) and not args.pool:
-        raise InputError(None, "--pool-labels and --lasermix need --pool")
+    if (args.pool_labels or args.lasermix or args.max_pool is not None) and not args.pool:
+        raise InputError(None, "--pool-labels, --lasermix and --max-pool need --pool")
     if args.lasermix and not args.pool_labels:
         raise InputError(args.pool, "--lasermix mixes in the pool unlabelled: give --pool-labels (the labeler's)")
     if args.pool:
         generated, empty = pool_records(args.pool, args.pool_labels), 0
+        if args.max_pool is not None:
+            if not 1 <= args.max_pool <= len(generated):
+                raise InputError(args.pool, f"holds {len(generated)} scans; --max-pool {args.max_pool} is not in "
+                                            f"1..{len(generated)}")
+            generated = generated[: args.max_pool]
         if read_subset(args.pool)["dataset"] != dataset:
             raise InputError(args.pool, f"pool and subset {args.subset} come from different datasets")
         role = "lasermix" if args.lasermix else "real_pseudo" if args.pool_labels else "real_truth"
@@ -70,7 +77,7 @@ def run(args) -> int:
             print(f"note: {empty} generated scans have no points and are not trained on", flush=True)
         role = "gda" if args.samples else "supervised_only"
     info = {
-        "role": role, "pool": args.pool, "pool_labels": args.pool_labels,
+        "role": role, "pool": args.pool, "pool_labels": args.pool_labels, "max_pool": args.max_pool,
         "dataset": dataset, "percent": 100.0 * subset["fraction"], "subset": args.subset,
         "subset_scans": subset["num_scans"], "domains": list(args.domains), "empty_generated": empty,
         # The generated scans taken (empty ones included); train.num_generated counts those trained on.

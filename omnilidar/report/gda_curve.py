@@ -163,6 +163,33 @@ def curve_rows(evaluations: list[dict], sampling_per_scan: float, pseudo_per_sca
     return [rows[k] for k in sorted(rows)]
 
 
+SERIES_ROLES = ("real_truth", "real_pseudo")  # curves of real pool scans beside the generated one
+
+
+def series_rows(evaluations: list[dict]) -> dict[str, list[dict]]:
+    """role -> rows (one per N = --max-pool, sorted) of the real series' runs: mean mIoU over the
+    seeds, its sample standard deviation, every seed's value and the mean training seconds."""
+    by_role: dict[str, dict[int, list[dict]]] = {}
+    for ev in evaluations:
+        info = ev["train"].get("info", {})
+        count = info.get("max_pool")
+        if info.get("role") not in SERIES_ROLES or not isinstance(count, int) or count < 1:
+            raise InputError(ev.get("_path"), "not a run on the first N scans of a real pool (--max-pool N)")
+        by_role.setdefault(info["role"], {}).setdefault(count, []).append(ev)
+    out = {}
+    for role, counts in by_role.items():
+        rows = []
+        for count in sorted(counts):
+            docs = sorted(counts[count], key=lambda d: d["seed"])
+            mious = [float(d["sets"]["val"]["miou"]) for d in docs]
+            rows.append({"scans": count, "miou": float(np.mean(mious)),
+                         "miou_std": float(np.std(mious, ddof=1)) if len(docs) > 1 else None,
+                         "miou_per_seed": mious, "seeds": [d["seed"] for d in docs],
+                         "train_seconds": round(float(np.mean([d["train"]["seconds"] for d in docs])), 2)})
+        out[role] = rows
+    return out
+
+
 def read_curve(path: str | Path) -> dict:
     """A GDA curve file, checked: ``rows`` of finite numbers (``ROW_FIELDS``), sorted by
     generated scans, mIoU a fraction in [0, 1], seconds >= 0. Returns the document."""
@@ -232,13 +259,25 @@ def curve_figure(path: str | Path, doc: dict) -> None:
     ax = axes[0]
     spread = [100.0 * r["miou_std"] if r.get("miou_std") is not None else 0.0 for r in rows]
     ax.errorbar(counts, [100.0 * r["miou"] for r in rows], yerr=spread if any(spread) else None, fmt="o-",
-                color="#1f77b4", capsize=3)
+                color="#1f77b4", capsize=3, label="generated (labeler's labels)")
+    start = [r for r in rows if r["generated_scans"] == 0]  # supervised-only: where every series starts
+    for role, label, color in (("real_truth", "real, true labels", "#2ca02c"),
+                               ("real_pseudo", "real, labeler's labels", "#98df8a")):
+        series = doc.get("real_series", {}).get(role)
+        if not series:
+            continue
+        xs = [0] * len(start) + [r["scans"] for r in series]
+        ys = [100.0 * r["miou"] for r in start + series]
+        errs = [100.0 * (r.get("miou_std") or 0.0) for r in start + series]
+        ax.errorbar(xs, ys, yerr=errs if any(errs) else None, fmt="s--", color=color, capsize=3, label=label)
+    if doc.get("real_series"):
+        ax.legend(fontsize=7)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("generated scans added")
+    ax.set_xlabel("scans added")
     ax.set_ylabel("val mIoU (%)")
     ax.grid(alpha=0.3)
     seeds = len(rows[0].get("seeds") or [None])
-    ax.set_title("mIoU vs generated scans" + (f" (mean +- std over {seeds} seeds)" if seeds > 1 else " (one seed)"),
+    ax.set_title("mIoU vs scans added" + (f" (mean +- std over {seeds} seeds)" if seeds > 1 else " (one seed)"),
                  fontsize=9)
     draw_miou_vs_compute(axes[1], rows, "mIoU vs compute (training + sampling + pseudo-labels)")
     ax = axes[2]
