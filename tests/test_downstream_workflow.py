@@ -98,7 +98,10 @@ def test_extra_seeds_are_their_own_runs(workdir):
     (workdir / "curve_seeds.yaml").write_text("downstream: {experiments: {gda_curve: {seeds: 2}}}\n")
     jobs = _jobs(workdir, "results/gda_curve.json", "--configfile", "config/config.yaml", "curve_seeds.yaml")
     assert jobs["train_gda_curve"] == jobs["train_gda_curve_seed"] == 3  # 4, 8, 16 generated scans
-    assert jobs["train_supervised"] == jobs["train_supervised_seed"] == 1 and jobs["evaluate_segmentor"] == 8
+    assert jobs["train_supervised"] == jobs["train_supervised_seed"] == 1
+    # The real series too: first 4, 8, 16 pool scans, true and pseudo-labels, each seed.
+    assert jobs["train_curve_pool"] == jobs["train_curve_pool_seed"] == 6
+    assert jobs["evaluate_segmentor"] == 2 * (1 + 3 + 6)
 
 
 def test_every_target_plans(workdir):
