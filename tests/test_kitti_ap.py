@@ -11,7 +11,7 @@ import pytest
 
 from omnilidar.cli import main
 from omnilidar.errors import InputError
-from omnilidar.metrics.kitti_ap import get_thresholds, kitti_eval, pi3det_annos
+from omnilidar.metrics.kitti_ap import ap_r11, ap_r40, get_thresholds, kitti_eval, pi3det_annos
 
 
 def anno(boxes, names=None, scores=None, occluded=None, truncated=None, bbox=None):
@@ -144,6 +144,32 @@ def test_rotated_boxes_match_themselves_exactly():
     result = kitti_eval([anno(b)], [anno(b, scores=[0.5])], ["Car"])
     assert ap(result, "R11", "Car", "3d") == pytest.approx(100 / 11)
 
+
+
+def test_sums_run_in_openpcdet_order_to_the_last_bit():
+    """AP (over thresholds) and AOS similarity (over matches) are summed term after term as
+    OpenPCDet does; numpy's pairwise sum rounds differently (last bits)."""
+    prec = np.array([1.0, 1.0, 2 / 3, 3 / 4, 4 / 5, 5 / 7, 6 / 9, 7 / 10, 7 / 11, 8 / 13] + [0.0] * 31)
+    assert ap_r40(prec) == 16.373418248418254  # value from OpenPCDet eval.py (get_mAP_R40) on this array
+    assert ap_r11(prec) == 22.14876033057851  # value from OpenPCDet eval.py (get_mAP) on this array
+
+    def case(n, n_fp, alpha_step):
+        """n cars all found, n_fp false positives far away with interleaved scores, heading errors
+        growing by alpha_step per detection (image metric and AOS only: the boxes are identical,
+        where OpenPCDet's rotated IoU fails)."""
+        boxes = cars(n)
+        fps = [[30.0 + 10 * k, 1.6, 60.0, 4.0, 1.5, 1.7, 0.0] for k in range(n_fp)]
+        dt = anno(boxes + fps, scores=list(np.linspace(0.95, 0.3, n)) + list(np.linspace(0.9, 0.35, n_fp)))
+        dt["alpha"] = dt["alpha"] + alpha_step * np.arange(n + n_fp)
+        return kitti_eval([anno(boxes)], [dt], ["Car"])
+
+    result = case(15, 5, 0.05)
+    # values from OpenPCDet eval.py on this case
+    assert ap(result, "R40", "Car", "bbox") == 27.893413775766724
+    assert ap(result, "R40", "Car", "aos") == 27.40593974469811
+    result = case(20, 6, 0.13)
+    assert ap(result, "R11", "Car", "aos") == 33.30619776777766  # value from OpenPCDet eval.py on this case
+    assert ap(result, "R40", "Car", "aos") == 32.066913093492225  # value from OpenPCDet eval.py on this case
 
 def test_pi3det_conversion_makes_every_box_easy():
     lidar = np.array([[10.0, 2.0, -1.0, 4.0, 2.0, 1.5, 0.0], [5.0, -1.0, -0.5, 0.8, 0.6, 1.7, 1.0]])

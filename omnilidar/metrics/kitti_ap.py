@@ -22,7 +22,8 @@ moderate / hard), metric (bbox: image IoU; bev: rotated IoU of [x, z, l, w, ry];
   40 boxes it is truncated: 4 boxes, 2 perfect detections -> R11 9.09);
 * precision, recall and AOS per threshold, made monotone (maximum over later
   thresholds); R11 = mean of precision at indices 0, 4, ..., 40 (x 100 / 11),
-  R40 = mean over indices 1..40;
+  R40 = mean over indices 1..40; these sums and the AOS similarity run term after term in
+  OpenPCDet's order, so the numbers agree to the last bit (given the same overlaps);
 * both overlap sets of OpenPCDet (Car 0.7/0.7/0.7 and 0.7/0.5/0.5, Pedestrian
   and Cyclist 0.5/0.5/0.5 and 0.5/0.25/0.25, ...), AOS only when detections carry
   an alpha other than -10.
@@ -40,6 +41,8 @@ range filter, Vehicle -> Car).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -224,9 +227,12 @@ def compute_statistics(overlaps: np.ndarray, gt_alpha, dt_score, dt_alpha, dt_bb
                         assigned[j] = True
                         stuff += 1
         fp -= stuff
-        if compute_aos:
-            similarity = float(np.sum((1.0 + np.cos(np.asarray(deltas, np.float64))) / 2.0)) if (tp > 0 or fp > 0) \
-                else -1.0
+        if compute_aos:  # summed one term after another, as OpenPCDet (numba's np.sum), for the same float
+            similarity = 0.0
+            for delta in deltas:
+                similarity += (1.0 + math.cos(delta)) / 2.0
+            if tp == 0 and fp == 0:
+                similarity = -1.0
     return tp, fp, fn, similarity, np.asarray(matched, np.float64)
 
 
@@ -282,14 +288,23 @@ def eval_class(gt_annos, dt_annos, classes, difficulties, metric: int, min_overl
     return {"precision": precision, "recall": recall, "orientation": aos}
 
 
+def _sum_in_order(values: np.ndarray, indices) -> np.ndarray:
+    """Sum of values[..., i] over indices, one after another: numpy's pairwise ``sum`` rounds
+    differently from OpenPCDet's loop (last bits of the AP)."""
+    total = np.zeros(values.shape[:-1])
+    for i in indices:
+        total = total + values[..., i]
+    return total
+
+
 def ap_r11(precision: np.ndarray) -> np.ndarray:
     """11-point AP (x 100): precision at threshold indices 0, 4, ..., 40."""
-    return precision[..., 0::4].sum(axis=-1) / 11 * 100
+    return _sum_in_order(precision, range(0, precision.shape[-1], 4)) / 11 * 100
 
 
 def ap_r40(precision: np.ndarray) -> np.ndarray:
     """40-point AP (x 100): precision at threshold indices 1..40."""
-    return precision[..., 1:].sum(axis=-1) / 40 * 100
+    return _sum_in_order(precision, range(1, precision.shape[-1])) / 40 * 100
 
 
 # --------------------------------------------------------------------------- entry points
