@@ -151,27 +151,27 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
     from omnilidar.io.atomic import atomic_path
 
     studies = doc["backbones"]
-    fig, axes = plt.subplots(1, len(studies), figsize=(5.2 * len(studies), 4.0), squeeze=False)
-    colors = ["#7f7f7f", "#2ca02c", "#98df8a", "#1f77b4", "#ff7f0e", "#9467bd"]
+    fig, axes = plt.subplots(1, len(studies), figsize=(max(5.6 * len(studies), 6.4), 4.4), squeeze=False)
+    colors = {"supervised_only": "#7f7f7f", "real_truth": "#2ca02c", "real_pseudo": "#98df8a", "generated": "#1f77b4",
+              "lasermix": "#ff7f0e", SIMULATED: "#9467bd"}
     for ax, (backbone, study) in zip(axes[0], studies.items()):
-        bars = [(ROW_LABELS[r], study["rows"][r]) for r in study["rows"]]
-        bars += [(f"GDA, {name}", rec) for name, rec in study.get("attempts", {}).items()]
+        bars = [(ROW_LABELS[r], study["rows"][r], colors[r]) for r in study["rows"]]
+        bars += [(f"GDA, {name}", rec, "#aec7e8") for name, rec in study.get("attempts", {}).items()]
         x = np.arange(len(bars))
-        means = [100 * rec["miou_mean"] for _, rec in bars]
-        stds = [100 * (rec["miou_std"] or 0.0) for _, rec in bars]
-        ax.bar(x, means, 0.6, yerr=stds if any(stds) else None, capsize=4,
-               color=colors + ["#aec7e8"] * (len(bars) - len(colors)))
-        for i, (_, rec) in enumerate(bars):
+        means = [100 * rec["miou_mean"] for _, rec, _ in bars]
+        stds = [100 * (rec["miou_std"] or 0.0) for _, rec, _ in bars]
+        ax.bar(x, means, 0.6, yerr=stds if any(stds) else None, capsize=4, color=[c for _, _, c in bars])
+        for i, (_, rec, _) in enumerate(bars):
             seeds = [100 * v for v in rec["miou"]]
             ax.plot(np.full(len(seeds), x[i]) + np.linspace(-0.12, 0.12, len(seeds)), seeds, "k.", ms=4)
         ax.axhline(means[0], color="k", ls="--", lw=0.8)
-        ax.set_xticks(x, [label for label, _ in bars], rotation=25, ha="right", fontsize=7)
+        ax.set_xticks(x, [label for label, _, _ in bars], rotation=25, ha="right", fontsize=7)
         ax.set_ylabel(f"{study['evalset']} mIoU (%)" + (" (mean over severities)" if study["evalset"] != "val" else ""))
         n = len(study["seeds"])
         ax.set_title(f"{backbone} ({'mean +- std over ' + str(n) + ' seeds' if n > 1 else 'one seed'})", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
     setup = doc["setup"]
-    fig.suptitle(f"GDA decomposition: {setup['percent']:g} % labels + N = {setup['scans']} scans "
+    fig.suptitle(f"GDA decomposition: {setup['percent']:g} % labels + N = {setup['scans']} scans\n"
                  f"({setup['domain']} samples for GDA, scored on {setup['evalset']})", fontsize=10)
     fig.tight_layout()
     with atomic_path(path) as tmp:
