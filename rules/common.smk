@@ -523,6 +523,12 @@ def study_run_inputs(w):
     return inputs
 
 
+def heldout_file():
+    """The decomposition's held-out train scans: outside the label subset and the pool."""
+    d = DECOMPOSITION
+    return f"{DATA}/subsets/semantickitti_{d['percent']}pct_heldout{d['heldout_scans']}.json"
+
+
 def study_evaluations(rows, evalset):
     """Evaluations (on ``evalset``) of the study runs of ``rows`` for every backbone and seed."""
     d = DECOMPOSITION
@@ -532,8 +538,8 @@ def study_evaluations(rows, evalset):
 
 
 def decomposition_evaluations():
-    """Val evaluations of every row, backbone and seed of the decomposition study."""
-    return study_evaluations(DECOMPOSITION_RUNS.values(), "val")
+    """Evaluations (val and the held-out train scans) of every row, backbone and seed of the study."""
+    return study_evaluations(DECOMPOSITION_RUNS.values(), "heldout")
 
 
 def weather_evaluations():
@@ -548,6 +554,11 @@ def attempt_evaluations(domain, evalset):
     """NAME=evaluation arguments of every attempt's runs (gda-<domain>-<name> rows)."""
     return [f"{name}={path}" for name in DECOMPOSITION["attempts"]
             for path in study_evaluations([f"gda-{domain}-{name}"], evalset)]
+
+
+def subset_sets_args(w):
+    """--subset-set arguments of an evaluation group (the held-out train scans)."""
+    return f"--subset-set heldout={heldout_file()}" if w.evalset == "heldout" else ""
 
 
 # Detection helpers (rules/detection.smk), after what they read.

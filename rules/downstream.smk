@@ -361,15 +361,16 @@ rule evaluate_segmentor:
         checkpoint=f"{SEG}/{{dataset}}/{{run}}.pt",
         index=f"{DATA}/index/{{dataset}}.json",
         sets=eval_inputs,
+        heldout=lambda w: [heldout_file()] if w.evalset == "heldout" else [],
     output:
         f"{SEG}/{{dataset}}/{{run}}.{{evalset}}.json",
     wildcard_constraints:
         dataset=r"semantickitti|nuscenes",
         run=r"(minkunet|spvcnn)_\d+pct_[a-z0-9_+\-]+",
-        evalset=r"val|corrupted|weather|" + "|".join(CORRUPTIONS),
+        evalset=r"val|heldout|corrupted|weather|" + "|".join(CORRUPTIONS),
     params:
         settings=downstream_settings("backend", "device", "evaluation"),
-        sets=lambda w: " ".join(f"--set {n}={d}" for n, d in eval_sets(w).items()),
+        sets=lambda w: " ".join([*(f"--set {n}={d}" for n, d in eval_sets(w).items()), subset_sets_args(w)]).strip(),
         code=code("evaluate-segmentor"),
     log:
         f"logs/downstream/evaluate/{{dataset}}_{{run}}.{{evalset}}.log",
@@ -567,6 +568,31 @@ rule make_pool:
     shell:
         "omnilidar make-subset --index {input.index} --exclude {input.subset} --count {wildcards.scans} "
         "--out {output} > {log} 2>&1"
+
+
+rule make_heldout:
+    """The decomposition's held-out train scans (outside the subset and the pool): where its regime is
+    checked, never on val."""
+    input:
+        index=f"{DATA}/index/semantickitti.json",
+        subset=f"{SUBSETS}/semantickitti_{{pct}}pct.json",
+        pool=lambda w: pool_file(w.pct, DECOMPOSITION_SCANS),
+    output:
+        f"{SUBSETS}/semantickitti_{{pct}}pct_heldout{{scans}}.json",
+    wildcard_constraints:
+        pct=r"\d+",
+        scans=r"[1-9]\d*",
+    params:
+        code=code("make-subset"),
+    log:
+        "logs/downstream/subset_semantickitti_{pct}pct_heldout{scans}.log",
+    conda:
+        ENV
+    resources:
+        **job_resources("make_subset"),
+    shell:
+        "omnilidar make-subset --index {input.index} --exclude {input.subset} {input.pool} "
+        "--count {wildcards.scans} --out {output} > {log} 2>&1"
 
 
 rule pseudo_label_pool:

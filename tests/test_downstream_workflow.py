@@ -194,6 +194,7 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     assert jobs["train_study"] == 5 * 2 * 3 and jobs["evaluate_segmentor"] == 30
     assert jobs["evaluate_labeler"] == jobs["make_pool"] == jobs["pseudo_label_pool"] == jobs["gda_decomposition"] == 1
     assert "train_supervised" not in jobs and "train_gda" not in jobs  # the quick-start runs are not the study's
+    assert jobs["make_heldout"] == 1  # train scans outside subset and pool: the regime is checked there
     (workdir / "study.yaml").write_text(
         "downstream: {experiments: {gda_decomposition: {training: {schedule: {iterations: 123}}}}}\n")
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
@@ -205,6 +206,11 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
                                       for line in lasermix)
     assert sum("--max-generated 16" in line for line in runs) == 6
     assert "spvcnn_1pct_study-truth16_seed2.pt" in out and "minkunet_1pct_study-real16_seed0.pt" in out
+    evaluations = [line for line in out.splitlines() if "omnilidar evaluate-segmentor" in line and "study-" in line]
+    assert len(evaluations) == 30 and all(
+        "--split val --subset-set heldout=data/subsets/semantickitti_1pct_heldout20.json" in line for line in evaluations)
+    assert ("--exclude data/subsets/semantickitti_1pct.json data/subsets/semantickitti_1pct_pool16.json --count 20"
+            in out)
     # The study's regime leaves the quick-start target's runs alone.
     headline = snakemake(workdir, "--dry-run", "--printshellcmds", "results/semkitti_1pct.json",
                          "--configfile", "config/config.yaml", "study.yaml").stdout

@@ -177,7 +177,21 @@ def test_study_gains_are_paired_by_seed_and_name_the_costliest_link():
     assert study["links"]["pseudo_labels"]["mean"] == pytest.approx(0.04)
     assert study["links"]["samples"]["mean"] == pytest.approx((0.08 + 0.06 + 0.06) / 3)
     assert study["costliest_link"] == "samples"
-    assert study["ceiling_clears_two_std"] is True
+    # The regime is checked on held-out train scans, never on val: without them there is no verdict.
+    assert study["ceiling_clears_two_std"] is None and study["regime_check"]["set"] is None
+    heldout = {"supervised_only": [0.30, 0.31, 0.32], "real_truth": [0.40, 0.30, 0.45]}
+    for e in evals:
+        role = e["train"]["info"]["role"]
+        m = heldout.get(role, [0.2] * 3)[e["seed"]]
+        e["sets"]["heldout"] = {**e["sets"]["val"], "miou": m}
+    check = dc.decomposition(evals)["minkunet"]["regime_check"]
+    assert check["set"] == "heldout" and check["ceiling_gain"]["per_seed"] == pytest.approx([0.10, -0.01, 0.13])
+    assert check["two_std"] == pytest.approx(2 * float(np.std([0.40, 0.30, 0.45], ddof=1)))
+    assert check["ceiling_clears_two_std"] is False  # 0.073 mean gain < 2 x 0.076
+    for e in evals:
+        if e["train"]["info"]["role"] == "real_truth":
+            e["sets"]["heldout"]["miou"] = [0.40, 0.41, 0.42][e["seed"]]
+    assert dc.decomposition(evals)["minkunet"]["ceiling_clears_two_std"] is True
     assert study["generated_share_of_ceiling"] == pytest.approx((-0.01 + 0 - 0.01) / 3 / 0.10)
     # A row missing, or a row run with other seeds, is an error naming it.
     with pytest.raises(InputError, match="lasermix"):
@@ -189,7 +203,11 @@ def test_study_gains_are_paired_by_seed_and_name_the_costliest_link():
 def test_one_seed_never_claims_the_ceiling_clears_the_noise():
     evals = [_seeded("spvcnn", role, m, 0) for role, m in
              (("supervised_only", 0.1), ("real_truth", 0.5), ("real_pseudo", 0.4), ("gda", 0.2), ("lasermix", 0.3))]
+    for e in evals:
+        e["sets"]["heldout"] = dict(e["sets"]["val"])
     study = dc.decomposition(evals)["spvcnn"]
+    # A 40-point ceiling gain on the held-out scans, but one seed: no claim.
+    assert study["regime_check"]["ceiling_gain"]["mean"] == pytest.approx(0.4)
     assert study["ceiling_clears_two_std"] is False and study["rows"]["generated"]["miou_std"] is None
 
 
@@ -296,3 +314,17 @@ def test_max_pool_takes_the_first_n_pool_scans(study_tree, tmp_path):
     assert train["num_generated"] == 2 and train["info"]["max_pool"] == 2
     assert main([*args, "--out", str(tmp_path / "four.pt"), "--max-pool", "4"]) != 0  # the pool holds 3
     assert not (tmp_path / "four.pt").exists()
+
+
+def test_heldout_scans_avoid_subset_and_pool_and_are_scored_as_their_own_set(study_tree, tmp_path):
+    root, _ = study_tree
+    out = tmp_path / "heldout.json"
+    assert main(["make-subset", "--index", str(root / "index.json"), "--exclude", str(root / "subset.json"),
+                 str(root / "pool.json"), "--count", "1", "--out", str(out)]) == 0
+    held = {e["points"] for e in subsets.read_subset(out)["entries"]}
+    used = {e["points"] for name in ("subset.json", "pool.json") for e in subsets.read_subset(root / name)["entries"]}
+    assert len(held) == 1 and not held & used
+    scores = tmp_path / "scores.json"
+    assert main(["evaluate-segmentor", "--checkpoint", str(root / "labeler.pt"), "--subset-set", f"heldout={out}",
+                 "--settings", json.dumps({"device": "cpu"}), "--out", str(scores)]) == 0
+    assert json.loads(scores.read_text())["sets"]["heldout"]["num_scans"] == 1

@@ -15,6 +15,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--split", default="val", help="split of --index (default val)")
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="NAME=DIR",
                         help="an extra set: a SemanticKITTI-layout folder of labelled scans (repeatable)")
+    parser.add_argument("--subset-set", dest="subset_sets", action="append", default=[], metavar="NAME=SUBSET",
+                        help="an extra set: the labelled scans of a subset list (make-subset), e.g. held-out "
+                             "train scans (repeatable)")
     parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
     parser.add_argument("--out", required=True, help="scores (JSON)")
 
@@ -34,6 +37,7 @@ def run(args) -> int:
         load_segmentor,
         semantickitti_dir_records,
     )
+    from omnilidar.downstream.seg.subsets import read_subset
     from omnilidar.downstream.seg.training import set_threads
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
@@ -53,6 +57,12 @@ def run(args) -> int:
         if not sep or not name:
             raise InputError(None, f"--set must be NAME=DIR, got {item!r}")
         sets[name] = semantickitti_dir_records(folder)
+    for item in args.subset_sets:
+        name, sep, path = item.partition("=")
+        if not sep or not name:
+            raise InputError(None, f"--subset-set must be NAME=SUBSET, got {item!r}")
+        subset = read_subset(path)
+        sets[name] = records_from_entries(subset["entries"], subset["dataset"])
     if not sets:
         raise InputError(None, "nothing to evaluate: give --index and/or --set")
     with torch.no_grad():  # a context, not a global switch: callers may run in-process

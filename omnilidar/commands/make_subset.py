@@ -9,8 +9,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--index", required=True, help="dataset index (data/index/<dataset>.json)")
     parser.add_argument("--split", default="train", help="split to subsample (default train)")
     parser.add_argument("--percent", type=float, help="percent of the split to keep (1 = every 100th)")
-    parser.add_argument("--exclude", metavar="SUBSET",
-                        help="write a pool instead: --count scans of the split outside this subset, evenly spread")
+    parser.add_argument("--exclude", metavar="SUBSET", nargs="+",
+                        help="write a pool instead: --count scans of the split outside these subsets, evenly spread")
     parser.add_argument("--count", type=int, help="scans in the pool (with --exclude)")
     parser.add_argument("--out", required=True, help="subset list (JSON)")
 
@@ -22,9 +22,12 @@ def run(args) -> int:
     if (args.exclude is None) == (args.percent is None) or (args.exclude is None) != (args.count is None):
         raise InputError(None, "give either --percent, or --exclude SUBSET with --count N")
     if args.exclude:
-        pool = make_pool(args.index, args.split, read_subset(args.exclude), args.count, args.exclude)
+        taken = [read_subset(path) for path in args.exclude]
+        excluded = {"entries": [e for doc in taken for e in doc["entries"]], "num_scans": sum(d["num_scans"] for d in taken)}
+        names = " + ".join(args.exclude)
+        pool = make_pool(args.index, args.split, excluded, args.count, names)
         write_subset(pool, args.out)
-        print(f"{pool['dataset']} {args.split}: pool of {pool['num_scans']} scans outside {args.exclude} -> {args.out}")
+        print(f"{pool['dataset']} {args.split}: pool of {pool['num_scans']} scans outside {names} -> {args.out}")
         return 0
     subset = make_subset(args.index, args.split, args.percent / 100.0)
     write_subset(subset, args.out)
