@@ -328,3 +328,17 @@ def test_heldout_scans_avoid_subset_and_pool_and_are_scored_as_their_own_set(stu
     assert main(["evaluate-segmentor", "--checkpoint", str(root / "labeler.pt"), "--subset-set", f"heldout={out}",
                  "--settings", json.dumps({"device": "cpu"}), "--out", str(scores)]) == 0
     assert json.loads(scores.read_text())["sets"]["heldout"]["num_scans"] == 1
+
+
+def test_simulated_pool_digest_follows_its_scans(study_tree, tmp_path):
+    """pool.json (the file trainers key their resumable state by) carries each simulated file's
+    digest, so a changed simulated scan changes it and a study run on it retrains instead of
+    resuming a stale checkpoint."""
+    from omnilidar.manifest import file_sha256
+
+    root, _ = study_tree
+    out = tmp_path / "fog_pool"
+    assert main(["simulate-pool", "fog", "--index", str(root / "index.json"), "--pool", str(root / "pool.json"),
+                 "--settings", "{}", "--seed", "0", "--out", str(out)]) == 0
+    for entry in subsets.read_subset(out / "pool.json")["entries"]:
+        assert entry["sha256"] == [file_sha256(entry["points"]), file_sha256(entry["labels"])]

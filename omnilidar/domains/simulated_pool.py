@@ -27,7 +27,7 @@ def simulate_pool(domain: DomainSpec, index_path: str | Path, pool_path: str | P
     from tqdm import tqdm
 
     from omnilidar.downstream.seg.subsets import read_subset, write_subset
-    from omnilidar.manifest import digest
+    from omnilidar.manifest import digest, file_sha256
 
     pool = read_subset(pool_path)
     index = load_index(index_path, domain.dataset)
@@ -50,8 +50,12 @@ def simulate_pool(domain: DomainSpec, index_path: str | Path, pool_path: str | P
             name = f"{k:06d}"
             write_points_kitti(tmp / "velodyne" / f"{name}.bin", built)
             semantickitti.write_label(tmp / "labels" / f"{name}.label", built.semantic, built.instance)
+            # The files' digests make pool.json's own digest (what trainers key their resumable
+            # state by) change whenever a simulated scan does, e.g. after an effect's code changed.
             entries.append({"points": str(out / "velodyne" / f"{name}.bin"),
-                            "labels": str(out / "labels" / f"{name}.label"), "source": entry["points"]})
+                            "labels": str(out / "labels" / f"{name}.label"), "source": entry["points"],
+                            "sha256": [file_sha256(tmp / "velodyne" / f"{name}.bin"),
+                                       file_sha256(tmp / "labels" / f"{name}.label")]})
             records.append({"name": name, "source": entry["points"], "num_points_in": len(scan),
                             "num_points_out": len(built), "seed": [seed, SIMULATED_POOL_STREAM, domain.id, k],
                             **record})
