@@ -714,7 +714,7 @@ rule simulate_pool:
     conda:
         ENV
     resources:
-        **job_resources("make_subset"),
+        **job_resources("simulate_pool"),
     shell:
         "omnilidar simulate-pool {wildcards.domain} --index {input.index} --pool {input.pool} "
         "--settings {params.settings:q} --seed {params.seed} --out {output} > {log} 2>&1"

@@ -97,6 +97,8 @@ _RULES = {
                            _runtime(sampling_seconds(2 * _EVAL["evidence"]["scans"] * len(config["generator"]["prompts"]),
                                                      _EVAL["steps"])), 2),
     "make_subset": (False, 500, 5, 1),
+    # The decomposition pool through a domain's scene: a domain build of N scans.
+    "simulate_pool": (False, 3000, 60, 1),
     # Importing a user's checkpoint is a small CPU job; training the labeler is the long GPU one.
     "train_labeler": ((False, 4000, 15, 1) if config["downstream"]["labeler"]["checkpoint"] else
                       (config["downstream"]["labeler"]["device"], 16000, _DOWN_H, _downstream_workers("labeler", "schedule"))),
