@@ -69,9 +69,11 @@ def run(args) -> int:
              if (args.domain or requested["domain"]) == "vehicle" else "the pool through the domain's scene"}
     timings = {f"train_{e['model']['backbone']}_{e['train']['info']['role']}_seed{e['seed']}": e["train"]["seconds"]
                for e in evals}
+    experiment = "gda_decomposition" if args.evalset == "val" else f"gda_decomposition_{args.domain}"
+    rows = list(next(iter(studies.values()))["rows"]) if studies else []
     doc = envelope(
-        "gda_decomposition" if args.evalset == "val" else f"gda_decomposition_{args.domain}", "gda-decomposition", args.settings, {"seed": args.seed}, timings, args.data_source,
-        setup=setup, rows=list(next(iter(studies.values()))["rows"]) if studies else [], links=dc.LINKS, attempts=requested["attempts"], backbones=studies,
+        experiment, "gda-decomposition", args.settings, {"seed": args.seed}, timings, args.data_source,
+        setup=setup, rows=rows, links=dc.LINKS, attempts=requested["attempts"], backbones=studies,
         labeler=labeler_quality(read_evaluation(args.labeler_evaluation)),
         pool_pseudo_labels_against_truth=pool.get("accuracy_against_truth"),
         miou_convention="miou: semantic-kitti-api (absent classes count as 0)",

@@ -62,7 +62,7 @@ def run(args) -> int:
                 raise InputError(args.pool, f"holds {len(generated)} scans; --max-pool {args.max_pool} is not in "
                                             f"1..{len(generated)}")
             generated = generated[: args.max_pool]
-        if read_subset(args.pool)["dataset"] != dataset:
+        if generated[0]["format"] != dataset:  # records carry their dataset's scan format
             raise InputError(args.pool, f"pool and subset {args.subset} come from different datasets")
         role = "lasermix" if args.lasermix else "real_pseudo" if args.pool_labels else "real_truth"
         if args.pool_source == "simulated":

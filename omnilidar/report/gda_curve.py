@@ -169,6 +169,8 @@ SERIES_ROLES = ("real_truth", "real_pseudo")  # curves of real pool scans beside
 def series_rows(evaluations: list[dict]) -> dict[str, list[dict]]:
     """role -> rows (one per N = --max-pool, sorted) of the real series' runs: mean mIoU over the
     seeds, its sample standard deviation, every seed's value and the mean training seconds."""
+    from omnilidar.downstream.seg.experiments import seed_statistics
+
     by_role: dict[str, dict[int, list[dict]]] = {}
     for ev in evaluations:
         info = ev["train"].get("info", {})
@@ -181,10 +183,9 @@ def series_rows(evaluations: list[dict]) -> dict[str, list[dict]]:
         rows = []
         for count in sorted(counts):
             docs = sorted(counts[count], key=lambda d: d["seed"])
-            mious = [float(d["sets"]["val"]["miou"]) for d in docs]
-            rows.append({"scans": count, "miou": float(np.mean(mious)),
-                         "miou_std": float(np.std(mious, ddof=1)) if len(docs) > 1 else None,
-                         "miou_per_seed": mious, "seeds": [d["seed"] for d in docs],
+            stats = seed_statistics(docs)
+            rows.append({"scans": count, "miou": stats["miou_mean"], "miou_std": stats["miou_std"],
+                         "miou_per_seed": stats["miou"], "seeds": stats["seeds"],
                          "train_seconds": round(float(np.mean([d["train"]["seconds"] for d in docs])), 2)})
         out[role] = rows
     return out

@@ -45,11 +45,15 @@ def predict_points(model: torch.nn.Module, scans: list[np.ndarray], voxel_size: 
     batch = coll(items)["batch"]
     device = next(model.parameters()).device
     logits = model(batch.to(device))
-    prob, top = torch.softmax(logits.float(), dim=1).max(dim=1)
+    if confidence:  # softmax only where asked: plain predictions are the argmax of the logits
+        prob, top = torch.softmax(logits.float(), dim=1).max(dim=1)
+        prob = prob.cpu()
+    else:
+        top, prob = logits.argmax(1), torch.zeros(0)
     pred = (top + 1).to(torch.uint8).cpu()
-    prob = prob.cpu()
+    parts = batch.split_points(prob) if confidence else [None] * len(scans)
     out = []
-    for scan, part, p_part, idx in zip(scans, batch.split_points(pred), batch.split_points(prob),
+    for scan, part, p_part, idx in zip(scans, batch.split_points(pred), parts,
                                        batch.split_points(batch.point_index)):
         full = np.zeros(len(scan), np.uint8)
         full[idx.numpy()] = part.numpy()

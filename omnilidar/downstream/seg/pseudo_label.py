@@ -28,6 +28,7 @@ from omnilidar.downstream.seg.label_spaces import get_label_space
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
 from omnilidar.io.atomic import atomic_path
+from omnilidar.io.json_file import read_json
 from omnilidar.metrics.segmentation import ConfusionMatrix
 
 SIDECAR = "sidecar.json"
@@ -137,10 +138,7 @@ def pool_records(pool_path: str | Path, label_dir: str | Path | None) -> list[di
     records = records_from_entries(pool["entries"], pool["dataset"])
     if label_dir is None:
         return records
-    sidecar = Path(label_dir) / SIDECAR
-    if not sidecar.is_file():
-        raise InputError(label_dir, "pseudo-label folder has no sidecar.json (run pseudo-label --pool)")
-    side = json.loads(sidecar.read_text())
+    side = read_json(Path(label_dir) / SIDECAR, "pseudo-label folder has no sidecar.json (run pseudo-label --pool)")
     if side.get("pool") is None or len(side["scans"]) != len(records):
         raise InputError(label_dir, f"was not made from a pool of {len(records)} scans like {pool_path}")
     for k, (rec, scan) in enumerate(zip(records, side["scans"])):
