@@ -532,6 +532,37 @@ def test_voxel_query_matches_the_scan_order_of_voxel_rcnn():
 
 
 
+
+def test_voxel_query_with_shared_centre_voxels_edges_and_small_chunks(monkeypatch):
+    # RoI grid points: many centres in one voxel at different positions, windows cut by
+    # the grid's edges, a non-cubic window, and chunks far smaller than the work.
+    gen = torch.Generator().manual_seed(21)
+    nz, ny, nx, voxel = 4, 12, 10, 0.4
+    occupied = torch.rand(2, nz, ny, nx, generator=gen) < 0.25
+    coords = occupied.nonzero()
+    xyz = (coords[:, [3, 2, 1]].float() + torch.rand(len(coords), 3, generator=gen)) * voxel
+    point_indices = torch.full((2, nz, ny, nx), -1, dtype=torch.int32)
+    point_indices[occupied] = torch.arange(len(coords), dtype=torch.int32)
+    centres = torch.rand(300, 3, generator=gen) * torch.tensor([nx * 0.5, ny * 0.5, nz]) * voxel
+    new_xyz = torch.cat([centres, centres[:60] + 0.01])
+    batch = torch.cat([torch.zeros(150), torch.ones(150), torch.zeros(60)]).long()
+    order = batch.argsort(stable=True)
+    new_xyz, batch = new_xyz[order], batch[order]
+    cell = (new_xyz / voxel).floor().long()
+    new_coords = torch.cat([batch[:, None], cell[:, [2, 1, 0]]], 1)
+    assert len(torch.unique(new_coords, dim=0)) < len(new_coords) // 2
+    want, want_empty = _brute_force_voxel_query((1, 3, 2), 0.7, 5, xyz, new_xyz, new_coords, point_indices)
+    for chunk in (1 << 20, 50, 1):
+        monkeypatch.setitem(sampling._CHUNK, "cpu", chunk)
+        for voxel_map in (point_indices, sampling.VoxelMap.from_coords(coords, point_indices.shape)):
+            idx, empty = sampling.voxel_query((1, 3, 2), 0.7, 5, xyz, new_xyz, new_coords, voxel_map)
+            assert idx.tolist() == want and empty.tolist() == want_empty
+    assert any(want_empty) and not all(want_empty)
+    assert any(len(set(row)) == 5 for row in want)
+    none = sampling.voxel_query((1, 1, 1), 0.7, 5, xyz, new_xyz[:0], new_coords[:0], point_indices)
+    assert none[0].shape == (0, 5) and none[1].shape == (0,)
+
+
 # ---------------------------------------------------------------- devices
 
 

@@ -89,13 +89,3 @@ class VoxelBackBone8x(nn.Module):
                                                  "x_conv3": x_conv3, "x_conv4": x_conv4}
         batch_dict["multi_scale_3d_strides"] = {"x_conv1": 1, "x_conv2": 2, "x_conv3": 4, "x_conv4": 8}
         return batch_dict
-
-
-def voxel_to_point_indices(x: SparseTensor) -> torch.Tensor:
-    """Dense (B, Z, Y, X) map from each active voxel to its row in ``x``, -1 elsewhere."""
-    out = torch.full((x.batch_size, *x.spatial_shape), -1, dtype=torch.long, device=x.device)
-    c = x.coords.long()
-    out[c[:, 0], c[:, 1], c[:, 2], c[:, 3]] = torch.arange(len(c), device=x.device)
-    return out
-
-

@@ -9,10 +9,10 @@ import copy
 import torch
 from torch import nn
 
-from omnilidar.downstream.det.models.backbone_3d import voxel_to_point_indices
 from omnilidar.downstream.det.models.box_utils import rotate_points_along_z, voxel_centers
 from omnilidar.downstream.det.models.roi_head_template import RoIHeadTemplate
 from omnilidar.downstream.det.models.voxel_pool import NeighborVoxelSAModuleMSG
+from omnilidar.downstream.det.ops.sampling import VoxelMap
 
 
 def _fc_stack(pre_channel: int, widths, dp_ratio: float, inplace: bool = False):
@@ -93,7 +93,8 @@ class VoxelRCNNHead(RoIHeadTemplate):
             scale_coords = torch.cat([batch_idx, torch.div(grid_coords, stride, rounding_mode="floor")], -1).int()
             features = layer(xyz=xyz, xyz_batch_cnt=xyz_cnt, new_xyz=grid_xyz.reshape(-1, 3),
                              new_xyz_batch_cnt=grid_cnt, new_coords=scale_coords.view(-1, 4),
-                             features=sp.feats, voxel2point_indices=voxel_to_point_indices(sp))
+                             features=sp.feats,
+                             voxel2point_indices=VoxelMap.from_coords(sp.coords, (batch_size, *sp.spatial_shape)))
             pooled.append(features.view(-1, grid ** 3, features.shape[-1]))
         return torch.cat(pooled, dim=-1)
 

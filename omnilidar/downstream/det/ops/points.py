@@ -39,7 +39,7 @@ def _box_groups(counts: list[int], budget: int):
         yield slice(start, len(counts))
 
 
-def _expand_runs(first: torch.Tensor, counts: torch.Tensor, owners: torch.Tensor):
+def expand_runs(first: torch.Tensor, counts: torch.Tensor, owners: torch.Tensor):
     """Flatten runs [first, first + count) into (position, owner) pairs."""
     total = int(counts.sum())
     owner = torch.repeat_interleave(owners, counts, output_size=total)
@@ -72,13 +72,13 @@ def pairs_within_squares(points: torch.Tensor, centre: torch.Tensor, reach: torc
     s_lo = strip(centre[:, 0] - reach).clamp(min=0)
     s_hi = strip(centre[:, 0] + reach)
     spans = (s_hi - s_lo + 1).clamp(min=0)
-    s, box = _expand_runs(s_lo, spans, torch.arange(m, device=dev))
+    s, box = expand_runs(s_lo, spans, torch.arange(m, device=dev))
     lo = torch.searchsorted(keys, s * (_Y_LEVELS + 1) + level(centre[box, 1] - reach[box]))
     hi = torch.searchsorted(keys, s * (_Y_LEVELS + 1) + level(centre[box, 1] + reach[box]), right=True)
     counts = (hi - lo).clamp(min=0)
     for g in _box_groups(counts.tolist(), _CHUNK):
         if int(counts[g].sum()):
-            pos, ib = _expand_runs(lo[g], counts[g], box[g])
+            pos, ib = expand_runs(lo[g], counts[g], box[g])
             yield order[pos], ib
 
 

@@ -15,11 +15,12 @@ boxes), voxel queries at the voxels of each centre's window.
 from __future__ import annotations
 
 import itertools
+from typing import NamedTuple
 
 import torch
 from torch import nn
 
-from omnilidar.downstream.det.ops.points import pairs_within_squares
+from omnilidar.downstream.det.ops.points import expand_runs, pairs_within_squares
 
 # (centre, window voxel) pairs per voxel-query batch: ~80 MB of scratch on CPU.
 _CHUNK = {"cpu": 1 << 20}
@@ -55,19 +56,17 @@ def farthest_point_sample(xyz: torch.Tensor, npoint: int) -> torch.Tensor:
     return torch.stack(picks, dim=1)
 
 
-def _first_hits(hit: torch.Tensor, values: torch.Tensor, nsample: int):
-    """Per row of ``hit`` (R, K) bool: the ``values`` (R, K) at the first
-    ``nsample`` hits in column order, padded with the first hit's value.
-    Returns (idx (R, nsample) long, empty (R,) bool); empty rows give 0."""
-    k = hit.shape[1]
-    key = torch.where(hit, torch.arange(k, device=hit.device), k)
-    first = torch.topk(key, min(nsample, k), dim=1, largest=False, sorted=True).values
-    if first.shape[1] < nsample:  # fewer candidates than samples: pad the columns
-        first = torch.cat([first, first.new_full((len(first), nsample - first.shape[1]), k)], dim=1)
-    picked = torch.gather(values, 1, first.clamp(max=k - 1))
-    picked = torch.where(first < k, picked, picked[:, :1])
-    empty = ~hit.any(dim=1)
-    return torch.where(empty[:, None], 0, picked), empty
+def _first_per_row(row: torch.Tensor, value: torch.Tensor, m: int, nsample: int):
+    """From hits sorted by ``row`` (and in the wanted order within a row), each of the
+    ``m`` rows' first ``nsample`` values, padded with its first; (idx (m, nsample)
+    long, empty (m,) bool), empty rows giving zeros."""
+    counts = torch.bincount(row, minlength=m)
+    rank = torch.arange(len(row), device=row.device) - (torch.cumsum(counts, 0) - counts)[row]
+    keep = rank < nsample
+    idx = torch.zeros(m, nsample, dtype=torch.long, device=row.device)
+    idx[row[keep], rank[keep]] = value[keep]
+    filled = torch.arange(nsample, device=row.device) < counts[:, None]
+    return torch.where(filled, idx, idx[:, :1]), counts == 0
 
 
 def _batch_starts(counts: torch.Tensor) -> list[int]:
@@ -78,14 +77,7 @@ def _first_in_index_order(ip: torch.Tensor, ic: torch.Tensor, n: int, m: int, ns
     """From hit pairs (point ip, centre ic), each centre's ``nsample`` lowest point
     indices, padded with its first; (idx (m, nsample), empty (m,)), empty rows 0."""
     key, _ = torch.sort(ic * max(n, 1) + ip)
-    ic, ip = key // max(n, 1), key % max(n, 1)
-    counts = torch.bincount(ic, minlength=m)
-    rank = torch.arange(len(key), device=key.device) - (torch.cumsum(counts, 0) - counts)[ic]
-    keep = rank < nsample
-    idx = torch.zeros(m, nsample, dtype=torch.long, device=key.device)
-    idx[ic[keep], rank[keep]] = ip[keep]
-    filled = torch.arange(nsample, device=key.device) < counts[:, None]
-    return torch.where(filled, idx, idx[:, :1]), counts == 0
+    return _first_per_row(key // max(n, 1), key % max(n, 1), m, nsample)
 
 
 def ball_query(radius: float, nsample: int, xyz: torch.Tensor, xyz_batch_cnt: torch.Tensor,
@@ -174,46 +166,124 @@ class QueryAndGroup(nn.Module):
         return new_features, idx
 
 
+class VoxelMap(NamedTuple):
+    """Sparse form of a voxel -> point map: the occupied cells' linear (b, z, y, x)
+    indices, ascending, and the point index each holds, over a (B, Z, Y, X) grid."""
+
+    shape: tuple[int, int, int, int]
+    cells: torch.Tensor
+    points: torch.Tensor
+
+    @classmethod
+    def from_dense(cls, point_indices: torch.Tensor) -> "VoxelMap":
+        """From OpenPCDet's dense (B, Z, Y, X) map, -1 where empty."""
+        flat = point_indices.reshape(-1)
+        cells = torch.nonzero(flat >= 0).squeeze(1)
+        return cls(tuple(point_indices.shape), cells, flat[cells].long())
+
+    @classmethod
+    def from_coords(cls, coords: torch.Tensor, shape) -> "VoxelMap":
+        """From (N, 4) [b, z, y, x] voxel coordinates; voxel i holds point i."""
+        _, nz, ny, nx = shape
+        c = coords.long()
+        cells, order = torch.sort(((c[:, 0] * nz + c[:, 1]) * ny + c[:, 2]) * nx + c[:, 3])
+        return cls(tuple(int(n) for n in shape), cells, order)
+
+
+def _distinct_voxels(coords: torch.Tensor, size, reach):
+    """Distinct rows of (M, 4) [b, z, y, x] ``coords`` (those more than ``reach`` + 1
+    cells outside the (z, y, x) grid ``size`` clamped to that margin, which leaves
+    their windows empty), and each row's index among them."""
+    pad = torch.tensor(reach, device=coords.device) + 1
+    size = torch.tensor(size, device=coords.device)
+    c = coords.long().clone()
+    c[:, 1:] = torch.minimum(torch.maximum(c[:, 1:], -pad), size - 1 + pad)
+    span = size + 2 * pad
+    key = c[:, 0]
+    for axis in range(3):
+        key = key * span[axis] + c[:, axis + 1] + pad[axis]
+    key, owner = torch.unique(key, return_inverse=True)
+    voxels = c.new_empty((len(key), 4))
+    voxels[owner] = c
+    return voxels, owner
+
+
 def voxel_query(max_range, radius: float, nsample: int, xyz: torch.Tensor, new_xyz: torch.Tensor,
-                new_coords: torch.Tensor, point_indices: torch.Tensor):
+                new_coords: torch.Tensor, point_indices: torch.Tensor | VoxelMap):
     """Voxel R-CNN's voxel query: neighbours of each centre among the voxels around
     its own voxel.
 
     ``max_range`` (z, y, x) half-widths of the voxel window; ``new_coords`` (M, 4)
-    [batch, z, y, x] of each centre's voxel; ``point_indices`` (B, Z, Y, X) the
-    index into ``xyz`` of each voxel's point, -1 where empty. Voxels are scanned
-    z, then y, then x from -range to +range; a voxel counts when its point lies
-    within ``radius`` (squared distance <= radius^2). Returns (idx (M, nsample)
-    long: the first ``nsample`` such point indices, padded with the first one;
-    empty_ball_mask (M,)), empty windows giving zeros.
+    [batch, z, y, x] of each centre's voxel; ``point_indices`` the index into
+    ``xyz`` of each voxel's point: OpenPCDet's dense (B, Z, Y, X) map, -1 where
+    empty, or the same as a :class:`VoxelMap`. Voxels are scanned z, then y, then
+    x from -range to +range; a voxel counts when its point lies within ``radius``
+    (squared distance <= radius^2). Returns (idx (M, nsample) long: the first
+    ``nsample`` such point indices, padded with the first one; empty_ball_mask
+    (M,)), empty windows giving zeros.
+
+    Only occupied voxels are visited: in (batch, z, y, x) order each (z, y) row of
+    a window is one contiguous run, found by binary search, so runs taken row by
+    row come out in the kernel's scan order. Windows are looked up once per
+    distinct centre voxel (a RoI's grid points share voxels).
     """
+    voxel_map = point_indices if isinstance(point_indices, VoxelMap) else VoxelMap.from_dense(point_indices)
     zr, yr, xr = (int(r) for r in max_range)
-    _, nz, ny, nx = point_indices.shape
+    _, nz, ny, nx = voxel_map.shape
     dev = new_xyz.device
-    grid = torch.meshgrid(torch.arange(-zr, zr + 1, device=dev), torch.arange(-yr, yr + 1, device=dev),
-                          torch.arange(-xr, xr + 1, device=dev), indexing="ij")
-    offsets = torch.stack([g.reshape(-1) for g in grid], dim=1)  # (K, 3) in scan order
-    k = len(offsets)
-    flat_map = point_indices.reshape(-1).long()
-    size = torch.tensor([nz, ny, nx], device=dev)
-    idx = torch.zeros(len(new_xyz), nsample, dtype=torch.long, device=dev)
-    empty = torch.ones(len(new_xyz), dtype=torch.bool, device=dev)
+    m = len(new_xyz)
+    idx = torch.zeros(m, nsample, dtype=torch.long, device=dev)
+    empty = torch.ones(m, dtype=torch.bool, device=dev)
+    if m == 0:
+        return idx, empty
+    occupied, occupied_point = voxel_map.cells, voxel_map.points
     r = torch.tensor(radius, dtype=xyz.dtype)
     r2 = (r * r).item()  # squared in the input dtype, as the kernel does
-    rows = max(1, _CHUNK.get(dev.type, _CHUNK_DEFAULT) // k)
-    for c0 in range(0, len(new_xyz), rows):
-        c1 = min(len(new_xyz), c0 + rows)
-        coords = new_coords[c0:c1].long()
-        cell = coords[:, None, 1:] + offsets[None]  # (R, K, 3) z y x
-        inside = ((cell >= 0) & (cell < size)).all(dim=2)
-        cell = torch.where(inside[..., None], cell, 0)
-        lin = ((coords[:, None, 0] * nz + cell[..., 0]) * ny + cell[..., 1]) * nx + cell[..., 2]
-        neighbour = torch.where(inside, flat_map[lin], -1)
-        pts = xyz[neighbour.clamp(min=0)]
-        ctr = new_xyz[c0:c1, None]
-        d2 = ((pts[..., 0] - ctr[..., 0]) ** 2 + (pts[..., 1] - ctr[..., 1]) ** 2
-              + (pts[..., 2] - ctr[..., 2]) ** 2)
-        idx[c0:c1], empty[c0:c1] = _first_hits((neighbour >= 0) & (d2 <= r2), neighbour, nsample)
+    voxels, owner = _distinct_voxels(new_coords, (nz, ny, nx), (zr, yr, xr))
+    # One run of occupied voxels per (centre voxel, dz, dy) row of its window.
+    dz = torch.arange(-zr, zr + 1, device=dev)[None, :, None]
+    dy = torch.arange(-yr, yr + 1, device=dev)[None, None, :]
+    b, z, y, x = (voxels[:, i, None, None] for i in range(4))
+    z, y = z + dz, y + dy
+    row = ((b * nz + z) * ny + y) * nx
+    lo = torch.searchsorted(occupied, (row + (x - xr).clamp(min=0)).reshape(-1))
+    hi = torch.searchsorted(occupied, (row + (x + xr).clamp(max=nx - 1)).reshape(-1), right=True)
+    inside = ((z >= 0) & (z < nz) & (y >= 0) & (y < ny)).reshape(-1)
+    runs = torch.where(inside, (hi - lo).clamp(min=0), 0)
+    row_voxel = torch.arange(len(voxels), device=dev).repeat_interleave(runs.numel() // len(voxels))
+    position, found_voxel = expand_runs(lo, runs, row_voxel)
+    found_point = occupied_point[position]
+    # Drop neighbours farther than the radius from the box around all centres of their
+    # voxel (a bound, with a margin for rounding; the exact test per centre follows).
+    corner_lo = torch.full((len(voxels), 3), torch.inf, dtype=torch.float64, device=dev)
+    corner_hi = torch.full((len(voxels), 3), -torch.inf, dtype=torch.float64, device=dev)
+    centres = new_xyz.to(torch.float64)
+    spread = owner[:, None].expand(-1, 3)
+    corner_lo.scatter_reduce_(0, spread, centres, "amin")
+    corner_hi.scatter_reduce_(0, spread, centres, "amax")
+    p = xyz[found_point].to(torch.float64)
+    gap = (corner_lo[found_voxel] - p).clamp(min=0) + (p - corner_hi[found_voxel]).clamp(min=0)
+    near = (gap * gap).sum(1) <= r2 * (1 + 1e-4) + 1e-9
+    found_voxel, found_point = found_voxel[near], found_point[near]
+    per_voxel = torch.bincount(found_voxel, minlength=len(voxels))
+    first = torch.cumsum(per_voxel, 0) - per_voxel
+    # Pair each centre with its voxel's occupied neighbours, in chunks of centres.
+    per_centre = per_voxel[owner]
+    ends = torch.cumsum(per_centre, 0)
+    budget = _CHUNK.get(dev.type, _CHUNK_DEFAULT)
+    c0 = 0
+    while c0 < m:
+        base = int(ends[c0 - 1]) if c0 else 0
+        c1 = min(m, max(c0 + 1, int(torch.searchsorted(ends, base + budget, right=True))))
+        counts = per_centre[c0:c1]
+        centre = torch.repeat_interleave(torch.arange(c0, c1, device=dev), counts)
+        within = torch.arange(len(centre), device=dev) - (torch.cumsum(counts, 0) - counts)[centre - c0]
+        point = found_point[first[owner[centre]] + within]
+        pts, ctr = xyz[point], new_xyz[centre]
+        d2 = ((pts[:, 0] - ctr[:, 0]) ** 2 + (pts[:, 1] - ctr[:, 1]) ** 2 + (pts[:, 2] - ctr[:, 2]) ** 2)
+        hit = d2 <= r2
+        idx[c0:c1], empty[c0:c1] = _first_per_row(centre[hit] - c0, point[hit], c1 - c0, nsample)
+        c0 = c1
     return idx, empty
 
 
