@@ -116,17 +116,29 @@ def submanifold_map(coords: torch.Tensor, spatial_shape, kernel_size=3, dilation
     offs = (kernel_offsets(ks, device) - centre) * torch.tensor(dil, device=device)  # (K, 3)
     c = coords.long()
     table = KeyTable(pack_coords(c, spatial_shape))
-    query = c[None, :, 1:] + offs[:, None, :]  # (K, N, 3)
+    # Offsets k and K-1-k are opposite, so i -> j under one is j -> i under the other:
+    # only the first half is searched; the centre maps every row to itself.
+    half = offs.shape[0] // 2
+    query = c[None, :, 1:] + offs[:half, None, :]  # (half, N, 3)
     inside = ((query >= 0) & (query < shape)).all(-1)
-    batch = c[:, 0].expand(offs.shape[0], n)
+    batch = c[:, 0].expand(half, n)
     keys = pack_coords(torch.cat([batch[..., None], query], -1).reshape(-1, 4), spatial_shape)
-    found = table.find(keys).reshape(offs.shape[0], n)
+    found = table.find(keys).reshape(half, n)
     found = torch.where(inside, found, torch.full_like(found, -1))
-    valid = found >= 0
-    out_idx = torch.arange(n, device=device).expand_as(found)[valid]
-    in_idx = found[valid]
-    identity = (offs.shape[0] - 1) // 2  # the centre of an odd kernel, flattened
-    return KernelMap(in_idx, out_idx, _bounds(valid.sum(1)), n, n, identity)
+    rows = torch.arange(n, device=device)
+    ins, outs = [], []
+    for k in range(half):
+        valid = found[k] >= 0
+        ins.append(found[k][valid])
+        outs.append(rows[valid])
+    mirrored = []
+    for k in reversed(range(half)):  # offset K-1-k: pairs swapped, listed by output row
+        order = torch.argsort(ins[k])
+        mirrored.append((outs[k][order], ins[k][order]))
+    ins += [rows] + [m[0] for m in mirrored]
+    outs += [rows] + [m[1] for m in mirrored]
+    counts = torch.tensor([len(i) for i in ins], dtype=torch.int64)
+    return KernelMap(torch.cat(ins), torch.cat(outs), _bounds(counts), n, n, half)
 
 
 def strided_output_shape(spatial_shape, kernel_size, stride, padding, dilation) -> tuple[int, int, int]:

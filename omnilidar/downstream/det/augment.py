@@ -21,6 +21,7 @@ from omnilidar.downstream.det.ops.iou import boxes_iou_bev
 from omnilidar.downstream.det.ops.points import points_in_boxes_mask
 
 OBJECT_ROTATION_TRIES = 50  # ST3D / Pi3DET num_try
+_CIRCLE_MARGIN = 0.01  # m
 
 
 def _inside(points: np.ndarray, box: np.ndarray) -> np.ndarray:
@@ -36,25 +37,34 @@ def rotate_objects(points: np.ndarray, boxes: np.ndarray, probability: float, no
     chosen = rng.uniform(0, 1, n) < probability
     angles = rng.uniform(noise[0], noise[1], (n, OBJECT_ROTATION_TRIES))
     points, boxes = points.copy(), boxes.copy()
+    radius = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4])  # BEV circle around each box
     for k in np.flatnonzero(chosen):
         tries = np.repeat(boxes[k:k + 1], OBJECT_ROTATION_TRIES, axis=0)
         tries[:, 6] += angles[k]
         first = 0
-        if n > 1:
-            others = np.delete(boxes, k, axis=0)
+        close = np.hypot(boxes[:, 0] - boxes[k, 0], boxes[:, 1] - boxes[k, 1]) <= radius + radius[k] + _CIRCLE_MARGIN
+        close[k] = False  # only boxes whose BEV circles meet this one's can overlap it
+        if close.any():
+            others = boxes[close]
             overlap = boxes_iou_bev(torch.from_numpy(tries.astype(np.float32)),
                                     torch.from_numpy(others.astype(np.float32))).amax(dim=1).numpy()
             free = np.flatnonzero(overlap == 0)
             if len(free) == 0:
                 continue
             first = int(free[0])
-        was_inside = _inside(points, boxes[k])
+        # Only points within the box's BEV circle (the same before and after the turn,
+        # widened for rounding) can be inside it; the exact test runs on those.
+        near = np.flatnonzero(np.hypot(points[:, 0] - boxes[k, 0], points[:, 1] - boxes[k, 1])
+                              <= radius[k] + _CIRCLE_MARGIN)
+        was_inside = near[_inside(points[near], boxes[k])]
         c, s = np.cos(angles[k, first]), np.sin(angles[k, first])
         d = points[was_inside, :2].astype(np.float64) - boxes[k, :2]
         points[was_inside, 0] = d[:, 0] * c - d[:, 1] * s + boxes[k, 0]
         points[was_inside, 1] = d[:, 0] * s + d[:, 1] * c + boxes[k, 1]
-        now_inside = _inside(points, tries[first])
-        points = points[was_inside == now_inside]
+        inside_before = np.zeros(len(near), bool)
+        inside_before[np.searchsorted(near, was_inside)] = True
+        changed = near[_inside(points[near], tries[first]) != inside_before]
+        points = np.delete(points, changed, axis=0)
         boxes[k] = tries[first]
     return points, boxes
 
