@@ -381,7 +381,7 @@ def test_pvrcnn_head_flattens_the_pooled_grid_channel_major():
     cfg = tiny_model_config()
     model = build_detector(cfg, 2, ["Car", "Pedestrian"], TINY_RANGE, TINY_VOXEL).eval()
     head = model.roi_head
-    g3, c = 6 ** 3, 32
+    g3, c = cfg["ROI_HEAD"]["ROI_GRID_POOL"]["GRID_SIZE"] ** 3, 32
     pooled = torch.zeros(1, g3, c)
     pooled[0, 5, 3] = 1.0  # grid cell 5, channel 3
     head.roi_grid_pool = lambda batch_dict: pooled
