@@ -26,6 +26,7 @@ flip, the spconv convention):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from itertools import product
 
@@ -163,16 +164,20 @@ def strided_map(
     n = coords.shape[0]
     device = coords.device
     c = coords.long()
-    offs = kernel_offsets(ks, device) * torch.tensor(dl, device=device)  # (K, 3)
-    kvol = offs.shape[0]
-    step = torch.tensor(st, dtype=torch.int64, device=device)
-    num = c[None, :, 1:] + torch.tensor(pd, device=device) - offs[:, None, :]  # (K, N, 3)
-    o = torch.div(num, step, rounding_mode="floor")
-    valid = ((o * step == num) & (o >= 0) & (o < torch.tensor(out_shape, device=device))).all(-1)
-    batch = c[:, 0].expand(kvol, n)
-    out_keys = pack_coords(torch.cat([batch[..., None], o], -1)[valid], out_shape)
+    # Per axis and kernel index k: input coordinate x reaches output (x + p - k * d) / s
+    # when that divides and lands in the grid; an offset's pairs are where all three do.
+    outs, hits = [], []
+    for axis in range(3):
+        num = c[None, :, axis + 1] + pd[axis] - (torch.arange(ks[axis], device=device) * dl[axis])[:, None]
+        o = torch.div(num, st[axis], rounding_mode="floor")  # (k_axis, N)
+        outs.append(o)
+        hits.append((o * st[axis] == num) & (o >= 0) & (o < out_shape[axis]))
+    valid = (hits[0][:, None, None] & hits[1][None, :, None] & hits[2][None, None, :]).reshape(math.prod(ks), n)
+    k, in_idx = torch.nonzero(valid, as_tuple=True)  # offset-major, inputs ascending within one
+    kz, ky, kx = k // (ks[1] * ks[2]), k // ks[2] % ks[1], k % ks[2]
+    out_keys = ((c[in_idx, 0] * out_shape[0] + outs[0][kz, in_idx]) * out_shape[1]
+                + outs[1][ky, in_idx]) * out_shape[2] + outs[2][kx, in_idx]  # pack_coords' keys
     uniq, out_idx = torch.unique(out_keys, sorted=True, return_inverse=True)
-    in_idx = torch.arange(n, device=device).expand(kvol, n)[valid]
     out_coords = unpack_keys(uniq, out_shape)
     kmap = KernelMap(in_idx, out_idx.reshape(-1), _bounds(valid.sum(1)), n, int(uniq.numel()))
     return kmap, out_coords, out_shape
