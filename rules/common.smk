@@ -19,6 +19,10 @@ except InputError as err:
 DATA = config["data_dir"]
 # One software environment for every rule: the omnilidar package and its dependencies.
 ENV = "../workflow/envs/omnilidar.yaml"
+# Scheduling: the chain that ends in generated, pseudo-labelled scans (domains -> generator ->
+# samples, the labelers, their labels) gates every GDA run, so when several jobs are ready its
+# jobs start first and runs that need only real data fill the other slots.
+GDA_CHAIN_PRIORITY = 10
 
 
 def settings(*keys, drop=()):

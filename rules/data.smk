@@ -29,6 +29,7 @@ rule synthesize:
         f"benchmarks/out/synthesize/{{dataset}}/{{shard_dir}}.tsv"
     conda:
         ENV
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("synthesize"),
     shell:
@@ -58,6 +59,7 @@ rule index_dataset:
         f"benchmarks/out/index/{{dataset}}.tsv"
     conda:
         ENV
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("index_dataset"),
     shell:

@@ -37,6 +37,7 @@ rule train_box_labeler:
     conda:
         ENV
     threads: 1
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("train_box_labeler"),
     shell:
@@ -65,6 +66,7 @@ rule pseudo_box:
     conda:
         ENV
     threads: 1
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("pseudo_box"),
     shell:

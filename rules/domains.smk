@@ -44,6 +44,7 @@ rule build_domain:
         f"benchmarks/out/domains/{{domain}}_{{shard}}.tsv"
     conda:
         ENV
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("build_domain"),
     shell:
@@ -67,6 +68,7 @@ rule domains_index:
         "benchmarks/out/domains/index.tsv"
     conda:
         ENV
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("domains_index"),
     shell:

@@ -67,6 +67,7 @@ rule train_labeler:
     conda:
         ENV
     threads: 1
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("train_labeler"),
     shell:
@@ -118,6 +119,7 @@ rule pseudo_label:
     conda:
         ENV
     threads: 1
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("pseudo_label"),
     shell:

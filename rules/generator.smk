@@ -18,6 +18,7 @@ rule encode_prompts:
         "benchmarks/out/generator/encode_prompts.tsv"
     conda:
         ENV
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("encode_prompts"),
     shell:
@@ -45,6 +46,7 @@ rule train_generator:
         "benchmarks/out/generator/train_{preset}.tsv"
     conda:
         ENV
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("train_generator"),
     shell:
@@ -73,6 +75,7 @@ rule sample_domain:
         "benchmarks/out/samples/{domain}_{shard}.tsv"
     conda:
         ENV
+    priority: GDA_CHAIN_PRIORITY
     resources:
         **job_resources("sample_domain"),
     shell:
