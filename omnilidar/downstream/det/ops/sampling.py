@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from omnilidar.downstream.det.ops.points import expand_runs, pairs_within_squares
+from omnilidar.sparse.tensor import pack_coords
 
 # (centre, window voxel) pairs per voxel-query batch: ~80 MB of scratch on CPU.
 _CHUNK = {"cpu": 1 << 20}
@@ -184,9 +185,7 @@ class VoxelMap(NamedTuple):
     @classmethod
     def from_coords(cls, coords: torch.Tensor, shape) -> "VoxelMap":
         """From (N, 4) [b, z, y, x] voxel coordinates; voxel i holds point i."""
-        _, nz, ny, nx = shape
-        c = coords.long()
-        cells, order = torch.sort(((c[:, 0] * nz + c[:, 1]) * ny + c[:, 2]) * nx + c[:, 3])
+        cells, order = torch.sort(pack_coords(coords, shape[1:]))
         return cls(tuple(int(n) for n in shape), cells, order)
 
 
@@ -275,10 +274,8 @@ def voxel_query(max_range, radius: float, nsample: int, xyz: torch.Tensor, new_x
     while c0 < m:
         base = int(ends[c0 - 1]) if c0 else 0
         c1 = min(m, max(c0 + 1, int(torch.searchsorted(ends, base + budget, right=True))))
-        counts = per_centre[c0:c1]
-        centre = torch.repeat_interleave(torch.arange(c0, c1, device=dev), counts)
-        within = torch.arange(len(centre), device=dev) - (torch.cumsum(counts, 0) - counts)[centre - c0]
-        point = found_point[first[owner[centre]] + within]
+        position, centre = expand_runs(first[owner[c0:c1]], per_centre[c0:c1], torch.arange(c0, c1, device=dev))
+        point = found_point[position]
         pts, ctr = xyz[point], new_xyz[centre]
         d2 = ((pts[:, 0] - ctr[:, 0]) ** 2 + (pts[:, 1] - ctr[:, 1]) ** 2 + (pts[:, 2] - ctr[:, 2]) ** 2)
         hit = d2 <= r2
