@@ -602,5 +602,20 @@ def label_platform(label):
     return {domain_label(p): p for p in ("drone", "quadruped") if p in DOMAIN_NAMES}[label]
 
 
+# The labeler trains with the schema's augmentation (its settings leave the key out).
+_DET_DEFAULT_AUGMENTATION = validate({"det": {}}, "downstream.schema.yaml")["det"]["augmentation"]
+
+
+def labeler_is_run(platform, detector, pct):
+    """Whether the supervised-only run is exactly the labeler's training (same detector, frames,
+    schedule, augmentation and seed), so that the labeler's checkpoint stands in for it."""
+    lab = DET_SECTION["labeler"]
+    return (int(pct) == 100 and not labeler_checkpoint(platform) and lab["detector"] == detector
+            and lab["schedule"] == DET_SECTION["schedule"]
+            and DET_SECTION["augmentation"] == _DET_DEFAULT_AUGMENTATION)
+
+
 def det_run(platform, detector, pct, role):
+    if role == "real" and labeler_is_run(platform, detector, pct):
+        return f"{DET}/{platform}/labeler"
     return f"{DET}/{platform}/{detector}_{pct}pct_{role}"

@@ -64,3 +64,29 @@ def test_result_needs_both_runs_of_each_detector(tmp_path):
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 2 and "no supervised_only evaluation" in res.stderr
     assert not (tmp_path / "r.json").exists()
+
+
+def test_the_labeler_stands_in_for_the_supervised_only_run_at_100_percent(tmp_path):
+    """At 100 % with the labeler's own detector and schedule the workflow passes the labeler's
+    evaluation as the supervised-only run (the same training); it is marked as such."""
+    labeler = evaluation("voxel_rcnn", "labeler", 31.0, classes=("Car",))
+    labeler["train"]["info"]["percent"] = 100.0
+    paths = {"labeler": labeler, "gda": evaluation("voxel_rcnn", "gda", 30.0, classes=("Car",))}
+    for name, doc in paths.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps(doc))
+    cmd = [sys.executable, "-m", "omnilidar.cli", "pi3det-result", "--experiment", "pi3det_drone_100pct",
+           "--platform", "drone", "--percent", "100", "--settings", "{}", "--data-source",
+           json.dumps({"pi3det": {"root": "r", "kind": "synthetic"}}),
+           "--evaluations", str(tmp_path / "labeler.json"), str(tmp_path / "gda.json"),
+           "--labeler-evaluation", str(tmp_path / "labeler.json"),
+           "--out", str(tmp_path / "r.json"), "--figure", str(tmp_path / "r.png")]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr[-2000:]
+    vx = json.loads((tmp_path / "r.json").read_text())["runs"]["voxel_rcnn"]
+    assert vx["supervised_only"]["is_labeler"] and not vx["gda"]["is_labeler"]
+    assert vx["gda_gain"]["Car"]["3d_R11@0.5"] == -1.0
+    # A labeler trained on a subset (or imported) is not a supervised-only run.
+    labeler["train"]["info"]["percent"] = 50.0
+    (tmp_path / "labeler.json").write_text(json.dumps(labeler))
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 2 and "no supervised_only evaluation" in res.stderr

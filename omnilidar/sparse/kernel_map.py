@@ -112,20 +112,43 @@ def submanifold_map(coords: torch.Tensor, spatial_shape, kernel_size=3, dilation
         raise ValueError(f"submanifold convolution needs an odd kernel size, got {ks}")
     n = coords.shape[0]
     device = coords.device
-    shape = torch.tensor(spatial_shape, dtype=torch.int64, device=device)
-    centre = torch.tensor([k // 2 for k in ks], dtype=torch.int64, device=device)
-    offs = (kernel_offsets(ks, device) - centre) * torch.tensor(dil, device=device)  # (K, 3)
+    sx, sy, sz = (int(s) for s in spatial_shape)
+    offs = [[(k - kk // 2) * d for k, kk, d in zip(pos, ks, dil)]
+            for pos in product(range(ks[0]), range(ks[1]), range(ks[2]))]  # weight order
     c = coords.long()
-    table = KeyTable(pack_coords(c, spatial_shape))
+    keys = pack_coords(c, spatial_shape)
+    # Keys are linear in the coordinates, so a neighbour's key is the row's key plus the
+    # offset's key delta. Searching the rows in key order keeps every query batch sorted
+    # (cache-friendly binary search); results go back to the rows' own order.
+    sorted_keys, by_key = torch.sort(keys)
+    sorted_c = c[by_key]
+    last = max(n - 1, 0)
     # Offsets k and K-1-k are opposite, so i -> j under one is j -> i under the other:
     # only the first half is searched; the centre maps every row to itself.
-    half = offs.shape[0] // 2
-    query = c[None, :, 1:] + offs[:half, None, :]  # (half, N, 3)
-    inside = ((query >= 0) & (query < shape)).all(-1)
-    batch = c[:, 0].expand(half, n)
-    keys = pack_coords(torch.cat([batch[..., None], query], -1).reshape(-1, 4), spatial_shape)
-    found = table.find(keys).reshape(half, n)
-    found = torch.where(inside, found, torch.full_like(found, -1))
+    half = len(offs) // 2
+    found = torch.full((half, n), -1, dtype=torch.int64, device=device)
+    # Offsets that differ only on the minor axis look in one run of keys: one binary search
+    # for the lowest, then the next few sorted keys hold the others if they exist.
+    columns: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for k, (o0, o1, o2) in enumerate(offs[:half]):
+        columns.setdefault((o0, o1), []).append((k, o2))
+    for (o0, o1), members in columns.items():
+        low = sorted_keys + ((o0 * sy + o1) * sz + members[0][1])
+        start = torch.searchsorted(sorted_keys, low)
+        span = members[-1][1] - members[0][1]
+        candidates = [(start + j).clamp_(max=last) for j in range(span + 1)]
+        gaps = [sorted_keys[pos] - low for pos in candidates]
+        for k, o2 in members:
+            target = o2 - members[0][1]
+            at = torch.full_like(start, -1)
+            for pos, gap in zip(candidates[:target + 1], gaps[:target + 1]):
+                at = torch.where(gap == target, pos, at)
+            hit = at >= 0
+            for axis, (o, size) in enumerate(zip((o0, o1, o2), (sx, sy, sz))):
+                if o:  # a key can wrap into a neighbouring row of the grid: check the axis itself
+                    moved = sorted_c[:, axis + 1] + o
+                    hit &= (moved >= 0) & (moved < size)
+            found[k, by_key] = torch.where(hit, by_key[at.clamp(min=0)], -1)
     rows = torch.arange(n, device=device)
     ins, outs = [], []
     for k in range(half):

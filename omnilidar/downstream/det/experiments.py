@@ -38,13 +38,20 @@ def _run(ev: dict) -> dict:
     return {"checkpoint": ev["checkpoint"], "iterations": train.get("iterations"),
             "train_frames": {"real": train.get("num_real"), "generated": train.get("num_generated")},
             "mixing": train.get("mixing") if train.get("info", {}).get("role") == "gda" else None,
-            "ap": _scores(ev), "recall": ev["recall"]}
+            "ap": _scores(ev), "recall": ev["recall"], "is_labeler": train.get("info", {}).get("role") == "labeler"}
+
+
+def run_role(ev: dict) -> str:
+    """supervised_only or gda; the labeler (trained on 100 %) stands in for the supervised-only
+    run at 100 % when the workflow found the two trainings identical."""
+    info = ev["train"]["info"]
+    return "supervised_only" if info["role"] == "labeler" and info.get("percent") == 100 else info["role"]
 
 
 def compare(evals: list[dict], platform: str, percent: int) -> dict:
     runs: dict[str, dict] = {}
     for ev in evals:
-        role = ev["train"]["info"]["role"]
+        role = run_role(ev)
         if role in runs.setdefault(ev["detector"], {}):
             raise InputError(ev["_path"], f"a second {role} run of {ev['detector']}")
         runs[ev["detector"]][role] = ev
@@ -79,7 +86,7 @@ def timings(evals: list[dict], labeler: dict, sidecars: list[dict]) -> dict:
     t = {"labeler_train": labeler["train"].get("seconds"), "labeler_evaluate": labeler["timings"]["evaluate_seconds"],
          "pseudo_boxes": round(sum(s["seconds"] for s in sidecars), 2)}
     for ev in evals:
-        name = f"{ev['detector']}_{ev['train']['info']['role']}"
+        name = f"{ev['detector']}_{run_role(ev)}"
         t[f"train_{name}"] = ev["train"].get("seconds")
         t[f"evaluate_{name}"] = ev["timings"]["evaluate_seconds"]
         t[f"inference_per_frame_{name}"] = ev["timings"]["inference_seconds_per_frame"]
@@ -91,7 +98,7 @@ def figure_panels(evals: list[dict]) -> list[dict]:
     panels = []
     by_detector: dict[str, dict] = {}
     for ev in evals:
-        by_detector.setdefault(ev["detector"], {})[ev["train"]["info"]["role"]] = ev
+        by_detector.setdefault(ev["detector"], {})[run_role(ev)] = ev
     for detector, roles in sorted(by_detector.items()):
         for cls in roles["supervised_only"]["classes"]:
             panels.append({"title": f"{detector} - {cls} (3D, IoU 0.5)", "series": {
