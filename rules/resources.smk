@@ -3,6 +3,7 @@
 # resources.partitions), runtime (work in the config x a rate in resources.rates),
 # mem_mb and cpus_per_task (data-loader workers + 1). Rules use `resources: **job_resources("name")`.
 import math
+import os
 import sys
 
 RESOURCES = config["resources"]
@@ -118,6 +119,15 @@ _RULES = {
 }
 
 
+# Local runs start at most one job per core the machine has, whatever --cores says: every
+# job runs torch on one thread, and two per core run slower in total than one per core
+# (cache and context-switch contention; benchmarks/bench_concurrency.py, README
+# "Benchmarks"). `--resources machine_cores=N` sets another limit; cluster jobs are not capped.
+MACHINE_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+if workflow.local_exec and "machine_cores" not in workflow.global_resources:
+    workflow.register_resource("machine_cores", MACHINE_CORES)
+
+
 def job_resources(rule):
     """Resources of one rule (see _RULES); config resources.mem_mb / resources.runtime replace them per rule."""
     device, mem_mb, runtime, cpus = _RULES[rule]
@@ -129,6 +139,7 @@ def job_resources(rule):
         "runtime": RESOURCES["runtime"].get(rule, runtime),
         "cpus_per_task": cpus * max(1, gpus),
         "slurm_partition": RESOURCES["partitions"]["gpu" if gpus else "cpu"],
+        "machine_cores": 1,
     }
     if gpus:
         out["gpu"] = gpus
