@@ -7,8 +7,8 @@ each running the same CPU_SMALL Voxel R-CNN training step on the synthetic KITTI
 scene of bench_det_voxelrcnn.py, for k = the machine's cores and k = twice that (what
 `snakemake -j4` starts on a 2-core machine without a cap). Prints the median step time
 per worker and the aggregate throughput (steps per second over all workers) of each k,
-and their ratio. The workflow's resources.smk caps local runs at one job per core
-(resource machine_cores) because of this ratio.
+and their ratio. Because of this ratio the workflow's resources.smk gives a local run at most
+the machine's cores (resources.one_job_per_core).
 """
 
 from __future__ import annotations

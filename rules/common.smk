@@ -485,14 +485,44 @@ def simulated_pool_dir(domain, pct, scans):
 
 def study_settings(row):
     """The downstream training keys with the study's own overrides (experiments.gda_decomposition.training)
-    and, for an attempt's row (gda-<name>), the attempt's."""
+    and, for an attempt's row (gda-<domain>-<name>), the attempt's (its `generator` key aside)."""
     from omnilidar.dicts import deep_merge
 
     merged = deep_merge({k: DOWNSTREAM[k] for k in (*TRAINING_KEYS, "mixing")}, DECOMPOSITION["training"])
     parts = row.split("-")
     if parts[0] == "gda" and len(parts) == 3:
-        merged = deep_merge(merged, DECOMPOSITION["attempts"][parts[2]])
+        overrides = {k: v for k, v in DECOMPOSITION["attempts"][parts[2]].items() if k != "generator"}
+        merged = deep_merge(merged, overrides)
     return json.dumps(merged, sort_keys=True)
+
+
+# Attempts with a `generator` key sample the generated row from their own generator (the
+# generator section with those keys laid over it, e.g. a longer run); its samples and their
+# pseudo-labels live under attempt-<name>/ beside the main ones, with the same shard layout.
+GENERATOR_ATTEMPTS = [name for name, a in DECOMPOSITION["attempts"].items() if "generator" in a]
+for _name in GENERATOR_ATTEMPTS:
+    _sampling = DECOMPOSITION["attempts"][_name]["generator"].get("sampling", {})
+    if {"scans_per_domain", "scans_per_shard"} & set(_sampling):
+        sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name}.generator "
+                 "may not change sampling.scans_per_domain or scans_per_shard (its samples keep the main shard layout).")
+
+
+def generator_attempt_pattern():
+    """Wildcard pattern of the attempts that train their own generator (none: matches nothing)."""
+    return "|".join(GENERATOR_ATTEMPTS) or r"(?!)"
+
+
+def attempt_generator_settings(name, drop=()):
+    """The generator section with attempt ``name``'s generator keys laid over it, as one JSON value."""
+    from omnilidar.dicts import deep_merge
+
+    merged = deep_merge(config["generator"], DECOMPOSITION["attempts"][name]["generator"])
+    return json.dumps({k: v for k, v in merged.items() if k not in drop}, sort_keys=True)
+
+
+def attempt_dirs(name, dirs, root):
+    """The attempt's counterparts of sample or pseudo-label shard directories under ``root``."""
+    return [d.replace(f"{root}/", f"{root}/attempt-{name}/", 1) for d in dirs]
 
 
 def study_flags(w, input):
@@ -514,7 +544,7 @@ def pool_labels_dir(pct, scans):
 def study_run_inputs(w):
     """Inputs of a study run (train_study): the subset, and what its row adds."""
     inputs = {"subset": f"{DATA}/subsets/semantickitti_{w.pct}pct.json"}
-    kind, domain = (w.row.split("-") + [None])[:2]
+    kind, domain, attempt = (w.row.split("-") + [None, None])[:3]
     if kind in ("truth", "pseudo", "lasermix"):
         inputs["pool"] = pool_file(w.pct, w.scans)
     if kind in ("pseudo", "lasermix"):
@@ -522,6 +552,9 @@ def study_run_inputs(w):
     if kind == "gda":
         inputs["samples"] = curve_shards(domain, w.scans)
         inputs["pseudo"] = curve_pseudo_labels(domain, w.scans)
+        if attempt in GENERATOR_ATTEMPTS:
+            inputs["samples"] = attempt_dirs(attempt, inputs["samples"], f"{DATA}/samples")
+            inputs["pseudo"] = attempt_dirs(attempt, inputs["pseudo"], PSEUDO)
     if kind == "sim":
         inputs["pool"] = simulated_pool_dir(domain, w.pct, w.scans)
     return inputs

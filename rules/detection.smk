@@ -207,8 +207,30 @@ rule pi3det_result:
         "--out {output.json} --figure {output.figure} > {log} 2>&1")
 
 
-rule detection:
-    """Every Pi3DET detection target."""
+PI3DET_RESULTS = expand("results/pi3det_{platform}_{pct}pct.json", platform=PI3DET_EXP["platforms"],
+                        pct=PI3DET_EXP["percents"])
+
+
+rule pi3det_summary:
+    """Car AP against the real-label fraction over every Pi3DET target (supervised-only, GDA, labeler)."""
     input:
-        expand("results/pi3det_{platform}_{pct}pct.json", platform=PI3DET_EXP["platforms"],
-               pct=PI3DET_EXP["percents"]),
+        PI3DET_RESULTS,
+    output:
+        "results/figures/pi3det_label_fractions.png",
+    params:
+        code=code("pi3det-summary"),
+    log:
+        "logs/detection/pi3det_summary.log",
+    conda:
+        ENV
+    resources:
+        **job_resources("pi3det_result"),
+    shell:
+        "omnilidar pi3det-summary {input} --figure {output} > {log} 2>&1"
+
+
+rule detection:
+    """Every Pi3DET detection target and their label-fraction figure."""
+    input:
+        PI3DET_RESULTS,
+        rules.pi3det_summary.output,

@@ -2,6 +2,17 @@
 # built domains, and sample every domain as parallel shard jobs.
 
 GENERATOR = f"{DATA}/generator"
+# generator_launcher(): torchrun with one process per GPU when resources.generator_gpus > 1.
+TRAIN_GENERATOR_SHELL = (
+    generator_launcher() + " train-generator --domains {{input.domains}} --prompts {{input.prompts}} "
+    "--preset {preset} --settings {{params.settings:q}} --seed {{params.seed}} "
+    "--work-dir {{params.work_dir}} --out {{output}} > {{log}} 2>&1"
+)
+SAMPLE_SHELL = (
+    "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
+    "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "
+    "--seed {params.seed} --out {output} > {log} 2>&1"
+)
 
 
 rule encode_prompts:
@@ -50,10 +61,7 @@ rule train_generator:
     resources:
         **job_resources("train_generator"),
     shell:
-        # generator_launcher(): torchrun with one process per GPU when resources.generator_gpus > 1.
-        generator_launcher() + " train-generator --domains {input.domains} --prompts {input.prompts} "
-        "--preset {wildcards.preset} --settings {params.settings:q} --seed {params.seed} "
-        "--work-dir {params.work_dir} --out {output} > {log} 2>&1"
+        TRAIN_GENERATOR_SHELL.format(preset="{wildcards.preset}")
 
 
 rule sample_domain:
@@ -64,6 +72,7 @@ rule sample_domain:
     output:
         directory(f"{DATA}/samples/{{domain}}/shard_{{shard}}"),
     wildcard_constraints:
+        domain=r"[^/]+",
         shard=r"\d+",
     params:
         settings=settings("generator"),
@@ -79,9 +88,61 @@ rule sample_domain:
     resources:
         **job_resources("sample_domain"),
     shell:
-        "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
-        "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "
-        "--seed {params.seed} --out {output} > {log} 2>&1"
+        SAMPLE_SHELL
+
+
+rule train_generator_attempt:
+    """The generator of a GDA decomposition attempt that changes it (attempts.<name>.generator laid
+    over the generator section, e.g. a longer run): OmniLiDAR's full preset, its own work dir."""
+    input:
+        domains=f"{DATA}/domains/index.json",
+        prompts=rules.encode_prompts.output,
+    output:
+        f"{GENERATOR}/attempt-{{attempt}}/model.pt",
+    wildcard_constraints:
+        attempt=generator_attempt_pattern(),
+    params:
+        settings=lambda w: attempt_generator_settings(w.attempt, drop=("sampling",)),
+        seed=config["seed"],
+        work_dir=lambda w: f"work/generator/attempt-{w.attempt}",
+        code=code("train-generator"),
+    log:
+        "logs/generator/train_attempt-{attempt}.log",
+    benchmark:
+        "benchmarks/out/generator/train_attempt-{attempt}.tsv"
+    conda:
+        ENV
+    resources:
+        **job_resources("train_generator"),
+    shell:
+        TRAIN_GENERATOR_SHELL.format(preset="full")
+
+
+rule sample_attempt:
+    """One shard of a domain's scans from a decomposition attempt's own generator."""
+    input:
+        checkpoint=f"{GENERATOR}/attempt-{{attempt}}/model.pt",
+        prompts=rules.encode_prompts.output,
+    output:
+        directory(f"{DATA}/samples/attempt-{{attempt}}/{{domain}}/shard_{{shard}}"),
+    wildcard_constraints:
+        attempt=generator_attempt_pattern(),
+        domain=r"[^/]+",
+        shard=r"\d+",
+    params:
+        settings=lambda w: attempt_generator_settings(w.attempt),
+        seed=config["seed"],
+        code=code("sample"),
+    log:
+        "logs/samples/attempt-{attempt}/{domain}_{shard}.log",
+    benchmark:
+        "benchmarks/out/samples/attempt-{attempt}/{domain}_{shard}.tsv"
+    conda:
+        ENV
+    resources:
+        **job_resources("sample_domain"),
+    shell:
+        SAMPLE_SHELL
 
 
 rule samples:

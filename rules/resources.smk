@@ -119,13 +119,14 @@ _RULES = {
 }
 
 
-# Local runs start at most one job per core the machine has, whatever --cores says: every
-# job runs torch on one thread, and two per core run slower in total than one per core
-# (cache and context-switch contention; benchmarks/bench_concurrency.py, README
-# "Benchmarks"). `--resources machine_cores=N` sets another limit; cluster jobs are not capped.
+# Local runs use at most the machine's cores, whatever --cores / -j says (resources.one_job_per_core):
+# every job runs torch on one thread, and two per core get less done in total than one (cache
+# and context-switch contention; benchmarks/bench_concurrency.py, README "Benchmarks"). Lowering
+# the provided cores, rather than adding a resource, lets the scheduler sleep while they are
+# all busy (with free cores left it re-solves its job selection every second).
 MACHINE_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-if workflow.local_exec and "machine_cores" not in workflow.global_resources:
-    workflow.register_resource("machine_cores", MACHINE_CORES)
+if RESOURCES["one_job_per_core"] and workflow.local_exec and (workflow._cores or 0) > MACHINE_CORES:
+    workflow.global_resources["_cores"] = MACHINE_CORES
 
 
 def job_resources(rule):
@@ -139,7 +140,6 @@ def job_resources(rule):
         "runtime": RESOURCES["runtime"].get(rule, runtime),
         "cpus_per_task": cpus * max(1, gpus),
         "slurm_partition": RESOURCES["partitions"]["gpu" if gpus else "cpu"],
-        "machine_cores": 1,
     }
     if gpus:
         out["gpu"] = gpus

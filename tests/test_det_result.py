@@ -90,3 +90,26 @@ def test_the_labeler_stands_in_for_the_supervised_only_run_at_100_percent(tmp_pa
     (tmp_path / "labeler.json").write_text(json.dumps(labeler))
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 2 and "no supervised_only evaluation" in res.stderr
+
+
+def test_summary_draws_car_ap_against_the_label_fraction(tmp_path):
+    paths = []
+    for platform in ("drone", "quadruped"):
+        for pct, sup, gda in ((1, 0.5, 2.0), (100, 30.0, 28.0)):
+            runs = {det: {"supervised_only": {"ap": {"Car": {"3d_R11@0.5": sup, "3d_R40@0.5": sup}}},
+                          "gda": {"ap": {"Car": {"3d_R11@0.5": gda, "3d_R40@0.5": gda}}}}
+                    for det in ("voxel_rcnn", "pv_rcnn")}
+            doc = {"platform": platform, "label_percent": pct, "runs": runs,
+                   "labeler": {"val_ap": {"Car": {"3d_R11@0.5": 31.0, "3d_R40@0.5": 28.0}}}}
+            paths.append(tmp_path / f"pi3det_{platform}_{pct}pct.json")
+            paths[-1].write_text(json.dumps(doc))
+    figure = tmp_path / "fractions.png"
+    cmd = [sys.executable, "-m", "omnilidar.cli", "pi3det-summary", *map(str, paths), "--figure", str(figure)]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "drone 100 %: pv_rcnn 30.00 -> 28.00, voxel_rcnn 30.00 -> 28.00" in res.stdout
+    assert figure.stat().st_size > 20_000
+    paths[0].write_text(json.dumps({"ap": {}}))
+    res = subprocess.run(cmd[:-1] + [str(tmp_path / "bad.png")], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 2 and "not a pi3det-result output" in res.stderr and str(paths[0]) in res.stderr
+    assert not (tmp_path / "bad.png").exists()

@@ -229,6 +229,42 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     assert result.count("--attempt share25=") == 6
 
 
+def test_a_generator_attempt_samples_and_labels_from_its_own_generator(workdir):
+    """attempts.<name>.generator: the generated row is trained again on scans from a generator with
+    those keys laid over the generator section (here a longer run), sampled and pseudo-labelled
+    beside the main ones; the main generator, its samples and the other rows are shared."""
+    from workflow_helpers import snakemake
+
+    (workdir / "long.yaml").write_text(
+        "downstream: {experiments: {gda_decomposition: {backbones: [minkunet], "
+        "attempts: {long: {generator: {training: {iterations: 1500}}}}}}}\n")
+    args = ("results/gda_decomposition.json", "--configfile", "config/config.yaml", "long.yaml")
+    jobs = _jobs(workdir, *args)
+    assert jobs["train_generator"] == 1 and jobs["train_generator_attempt"] == 1
+    assert jobs["sample_attempt"] == jobs["sample_domain"] >= 1  # the Vehicle shards holding N scans, twice
+    assert jobs["train_study"] == 5 * 3 + 3
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", *args).stdout
+    train = next(line for line in out.splitlines() if "omnilidar train-generator" in line and "attempt-long" in line)
+    assert '"iterations": 1500' in train and "--preset full" in train and "--work-dir work/generator/attempt-long" in train
+    main = next(line for line in out.splitlines() if "omnilidar train-generator" in line and "attempt-long" not in line)
+    assert '"iterations": 1500' not in main
+    tried = [line for line in out.splitlines()
+             if "omnilidar train-segmentor" in line and "study-gda-vehicle-long" in line]
+    assert len(tried) == 3 and all("--samples data/samples/attempt-long/Vehicle/shard_0" in line
+                                   and "--pseudo-labels data/pseudo_labels/attempt-long/Vehicle/shard_0" in line
+                                   and '"generator"' not in line for line in tried)
+    plain = [line for line in out.splitlines() if "omnilidar train-segmentor" in line and "study-gda-vehicle16" in line]
+    assert len(plain) == 3 and all("--samples data/samples/Vehicle/shard_0" in line for line in plain)
+    assert "--checkpoint data/generator/attempt-long/model.pt" in out
+    # The attempt may not move the shard layout its rows are read from.
+    (workdir / "bad.yaml").write_text(
+        "downstream: {experiments: {gda_decomposition: {attempts: {long: {generator: "
+        "{sampling: {scans_per_shard: 3}}}}}}}\n")
+    res = snakemake(workdir, "--dry-run", "results/gda_decomposition.json", "--configfile", "config/config.yaml",
+                    "bad.yaml", check=False)
+    assert res.returncode != 0 and "attempts.long.generator may not change sampling" in res.stdout + res.stderr
+
+
 def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simulated_fog(workdir):
     """results/gda_decomposition_fog.json: the four real rows are the main study's runs scored on
     the fog corrupted sets; the generated row takes Fog samples, the simulated row the pool through

@@ -52,3 +52,39 @@ def pr_figure(panels: list[dict], out: str | Path, title: str = "") -> None:
     with atomic_path(out) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
     plt.close(fig)
+
+
+def label_fraction_figure(results: list[dict], out: str | Path, metric: str = "3d_R11@0.5") -> None:
+    """Car AP against the real-label fraction: one panel per platform and detector, supervised-only
+    and GDA, the platform's box labeler as a line. ``results``: pi3det-result documents."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not results:
+        raise ValueError("no Pi3DET results to draw")
+    platforms = sorted({r["platform"] for r in results})
+    detectors = sorted({d for r in results for d in r["runs"]})
+    fig, axes = plt.subplots(len(platforms), len(detectors), figsize=(4.6 * len(detectors), 3.4 * len(platforms)),
+                             squeeze=False)
+    for i, platform in enumerate(platforms):
+        docs = sorted((r for r in results if r["platform"] == platform), key=lambda r: r["label_percent"])
+        for j, detector in enumerate(detectors):
+            ax = axes[i][j]
+            pct = [r["label_percent"] for r in docs if detector in r["runs"]]
+            for role, label in (("supervised_only", "supervised-only"), ("gda", "GDA")):
+                ap = [r["runs"][detector][role]["ap"]["Car"][metric] for r in docs if detector in r["runs"]]
+                ax.plot(pct, ap, "o-", color=COLORS[label], label=label)
+            labeler = docs[-1]["labeler"]["val_ap"]["Car"][metric]
+            ax.axhline(labeler, color="#d62728", ls="--", lw=1, label=f"box labeler ({labeler:.1f})")
+            ax.set_xscale("log")
+            ax.set_xticks(pct, [str(p) for p in pct])
+            ax.set_xlabel("real labels (%)")
+            ax.set_ylabel(f"Car {metric.replace('_', ' ')} (%)")
+            ax.set_title(f"{platform}, {detector}", fontsize=9)
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
