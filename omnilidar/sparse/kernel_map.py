@@ -113,14 +113,13 @@ def submanifold_map(coords: torch.Tensor, spatial_shape, kernel_size=3, dilation
     n = coords.shape[0]
     device = coords.device
     sx, sy, sz = (int(s) for s in spatial_shape)
-    offs = [[(k - kk // 2) * d for k, kk, d in zip(pos, ks, dil)]
-            for pos in product(range(ks[0]), range(ks[1]), range(ks[2]))]  # weight order
+    offs = ((kernel_offsets(ks) - torch.tensor([k // 2 for k in ks])) * torch.tensor(dil)).tolist()  # weight order
     c = coords.long()
-    keys = pack_coords(c, spatial_shape)
     # Keys are linear in the coordinates, so a neighbour's key is the row's key plus the
     # offset's key delta. Searching the rows in key order keeps every query batch sorted
     # (cache-friendly binary search); results go back to the rows' own order.
-    sorted_keys, by_key = torch.sort(keys)
+    table = KeyTable(pack_coords(c, spatial_shape))
+    sorted_keys, by_key = table.sorted_keys, table.order
     sorted_c = c[by_key]
     last = max(n - 1, 0)
     # Offsets k and K-1-k are opposite, so i -> j under one is j -> i under the other:
