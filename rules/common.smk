@@ -408,13 +408,14 @@ def _shards_holding(count):
 
 
 def curve_shards(name, count):
-    """The first sample shards of a domain (config key): those holding its first ``count`` scans."""
-    return domain_sample_shards(name)[: _shards_holding(count)]
+    """The first sample shards of a domain (config key): those holding its first ``count`` scans (past
+    scans_per_domain when ``count`` asks for more)."""
+    return [f"{DATA}/samples/{domain_label(name)}/shard_{k}" for k in range(_shards_holding(count))]
 
 
 def curve_pseudo_labels(name, count):
     """Their pseudo-label shards."""
-    return pseudo_label_shards(name)[: _shards_holding(count)]
+    return [d.replace(f"{DATA}/samples/", f"{PSEUDO}/", 1) for d in curve_shards(name, count)]
 
 
 CURVE_SERIES_ROW = {"real_truth": "truth", "real_pseudo": "pseudo"}
@@ -446,7 +447,8 @@ def curve_pool_inputs(w):
 
 
 DECOMPOSITION = EXPERIMENTS["gda_decomposition"]
-DECOMPOSITION_SCANS = min(DECOMPOSITION["scans"], config["generator"]["sampling"]["scans_per_domain"])
+# N may exceed generator.sampling.scans_per_domain: the study's domains sample the further shards.
+DECOMPOSITION_SCANS = DECOMPOSITION["scans"]
 WEATHER_STUDY = DECOMPOSITION["weather"]
 # Row of the decomposition study -> its run's wildcard (files ..._study-<row><N>_seed<k>.pt); the
 # generated row names its domain (gda-<domain>, an attempt gda-<domain>-<attempt>), the simulated
@@ -560,10 +562,11 @@ def study_run_inputs(w):
     return inputs
 
 
-def heldout_file():
-    """The decomposition's held-out train scans: outside the label subset and the pool."""
-    d = DECOMPOSITION
-    return f"{DATA}/subsets/semantickitti_{d['percent']}pct_heldout{d['heldout_scans']}.json"
+def heldout_file(pct=None):
+    """The decomposition's held-out train scans: whole train sequences that hold no scan of the label
+    subset; no pool scan comes from them."""
+    pct = DECOMPOSITION["percent"] if pct is None else pct
+    return f"{DATA}/subsets/semantickitti_{pct}pct_heldout{DECOMPOSITION['heldout_scans']}.json"
 
 
 def study_evaluations(rows, evalset):

@@ -550,10 +550,12 @@ rule gda_curve:
 
 
 rule make_pool:
-    """The decomposition study's pool: N real train scans outside a label subset, evenly spread."""
+    """The decomposition study's pool: N real train scans outside a label subset and the held-out
+    sequences, evenly spread."""
     input:
         index=f"{DATA}/index/semantickitti.json",
         subset=f"{SUBSETS}/semantickitti_{{pct}}pct.json",
+        heldout=lambda w: heldout_file(w.pct),
     output:
         pool_file("{pct}", "{scans}"),
     wildcard_constraints:
@@ -568,17 +570,16 @@ rule make_pool:
     resources:
         **job_resources("make_subset"),
     shell:
-        "omnilidar make-subset --index {input.index} --exclude {input.subset} --count {wildcards.scans} "
-        "--out {output} > {log} 2>&1"
+        "omnilidar make-subset --index {input.index} --exclude {input.subset} --heldout {input.heldout} "
+        "--count {wildcards.scans} --out {output} > {log} 2>&1"
 
 
 rule make_heldout:
-    """The decomposition's held-out train scans (outside the subset and the pool): where its regime is
-    checked, never on val."""
+    """The decomposition's held-out train scans (whole sequences without a subset scan, never in a
+    pool): where its regime is checked, never on val."""
     input:
         index=f"{DATA}/index/semantickitti.json",
         subset=f"{SUBSETS}/semantickitti_{{pct}}pct.json",
-        pool=lambda w: pool_file(w.pct, DECOMPOSITION_SCANS),
     output:
         f"{SUBSETS}/semantickitti_{{pct}}pct_heldout{{scans}}.json",
     wildcard_constraints:
@@ -593,7 +594,7 @@ rule make_heldout:
     resources:
         **job_resources("make_subset"),
     shell:
-        "omnilidar make-subset --index {input.index} --exclude {input.subset} {input.pool} "
+        "omnilidar make-subset --index {input.index} --exclude {input.subset} --whole-sequences "
         "--count {wildcards.scans} --out {output} > {log} 2>&1"
 
 

@@ -194,7 +194,8 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     assert jobs["train_study"] == 5 * 2 * 3 and jobs["evaluate_segmentor"] == 30
     assert jobs["evaluate_labeler"] == jobs["make_pool"] == jobs["pseudo_label_pool"] == jobs["gda_decomposition"] == 1
     assert "train_supervised" not in jobs and "train_gda" not in jobs  # the quick-start runs are not the study's
-    assert jobs["make_heldout"] == 1  # train scans outside subset and pool: the regime is checked there
+    assert jobs["make_heldout"] == 1  # whole train sequences outside subset and pool: the regime is checked there
+    assert jobs["sample_domain"] == 3  # N = 48 Vehicle scans: three shards of 16, past scans_per_domain
     (workdir / "study.yaml").write_text(
         "downstream: {experiments: {gda_decomposition: {training: {schedule: {iterations: 123}}}}}\n")
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
@@ -202,15 +203,16 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     runs = [line for line in out.splitlines() if "omnilidar train-segmentor" in line]
     assert len(runs) == 30 and all('"iterations": 123' in line for line in runs)
     lasermix = [line for line in runs if "--lasermix" in line]
-    assert len(lasermix) == 6 and all("--pool-labels data/pseudo_labels/pool/semantickitti_1pct_pool16" in line
+    assert len(lasermix) == 6 and all("--pool-labels data/pseudo_labels/pool/semantickitti_1pct_pool48" in line
                                       for line in lasermix)
-    assert sum("--max-generated 16" in line for line in runs) == 6
-    assert "spvcnn_1pct_study-truth16_seed2.pt" in out and "minkunet_1pct_study-real16_seed0.pt" in out
+    assert sum("--max-generated 48" in line and "data/samples/Vehicle/shard_2" in line for line in runs) == 6
+    assert "spvcnn_1pct_study-truth48_seed2.pt" in out and "minkunet_1pct_study-real48_seed0.pt" in out
     evaluations = [line for line in out.splitlines() if "omnilidar evaluate-segmentor" in line and "study-" in line]
     assert len(evaluations) == 30 and all(
         "--split val --subset-set heldout=data/subsets/semantickitti_1pct_heldout20.json" in line for line in evaluations)
-    assert ("--exclude data/subsets/semantickitti_1pct.json data/subsets/semantickitti_1pct_pool16.json --count 20"
-            in out)
+    assert "--exclude data/subsets/semantickitti_1pct.json --whole-sequences --count 20" in out
+    assert ("--exclude data/subsets/semantickitti_1pct.json --heldout data/subsets/semantickitti_1pct_heldout20.json "
+            "--count 48" in out)
     # The study's regime leaves the quick-start target's runs alone.
     headline = snakemake(workdir, "--dry-run", "--printshellcmds", "results/semkitti_1pct.json",
                          "--configfile", "config/config.yaml", "study.yaml").stdout
@@ -224,7 +226,7 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
                     "--configfile", "config/config.yaml", "attempt.yaml").stdout
     tried = [line for line in out.splitlines()
              if "omnilidar train-segmentor" in line and "study-gda-vehicle-share25" in line]
-    assert len(tried) == 6 and all('"generated_share": 0.25' in line and "--max-generated 16" in line for line in tried)
+    assert len(tried) == 6 and all('"generated_share": 0.25' in line and "--max-generated 48" in line for line in tried)
     result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
     assert result.count("--attempt share25=") == 6
 
@@ -253,7 +255,7 @@ def test_a_generator_attempt_samples_and_labels_from_its_own_generator(workdir):
     assert len(tried) == 3 and all("--samples data/samples/attempt-long/Vehicle/shard_0" in line
                                    and "--pseudo-labels data/pseudo_labels/attempt-long/Vehicle/shard_0" in line
                                    and '"generator"' not in line for line in tried)
-    plain = [line for line in out.splitlines() if "omnilidar train-segmentor" in line and "study-gda-vehicle16" in line]
+    plain = [line for line in out.splitlines() if "omnilidar train-segmentor" in line and "study-gda-vehicle48" in line]
     assert len(plain) == 3 and all("--samples data/samples/Vehicle/shard_0" in line for line in plain)
     assert "--checkpoint data/generator/attempt-long/model.pt" in out
     # The attempt may not move the shard layout its rows are read from.
@@ -276,7 +278,7 @@ def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simul
     assert jobs["evaluate_segmentor"] == 30 + 36 and jobs["simulate_pool"] == 1
     assert jobs["build_corrupted"] == 3  # fog at three severities, nothing else
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition_fog.json").stdout
-    assert "--pool data/subsets/simulated/fog_1pct_pool16/pool.json --pool-source simulated" in out
-    assert "--domains fog --max-generated 16" in out
+    assert "--pool data/subsets/simulated/fog_1pct_pool48/pool.json --pool-source simulated" in out
+    assert "--domains fog --max-generated 48" in out
     result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
-    assert "--evalset fog --domain fog" in result and "minkunet_1pct_study-truth16_seed0.fog.json" in result
+    assert "--evalset fog --domain fog" in result and "minkunet_1pct_study-truth48_seed0.fog.json" in result

@@ -38,6 +38,49 @@ def test_pool_is_disjoint_from_the_subset_and_evenly_spread(tmp_path):
         subsets.make_pool(index, "train", subset, 199, "subset.json")
 
 
+def _sequence_index(tmp_path, sizes):
+    """An index whose train split is sequences "00", "01", ... of the given sizes."""
+    entries = [{"points": f"{q:02d}/{i:06d}.bin", "labels": f"{q:02d}/{i:06d}.label", "num_points": 10,
+                "sequence": f"{q:02d}", "frame": f"{i:06d}"} for q, n in enumerate(sizes) for i in range(n)]
+    path = tmp_path / "index.json"
+    path.write_text(json.dumps({"dataset": "semantickitti", "splits": {"train": entries, "val": entries[:2]}}))
+    return path
+
+
+def test_heldout_takes_whole_last_sequences_and_the_pool_leaves_them_out(tmp_path):
+    index = _sequence_index(tmp_path, [50, 50, 50, 30, 20])
+    subset = subsets.make_subset(index, "train", 0.01)  # scans 0 and 100: sequences 00 and 02
+    held = subsets.make_heldout(index, "train", subset, 40, "subset.json")
+    # The last sequences without a subset scan (04, then 03) until they hold 40 scans, spread evenly.
+    assert held["excludes"]["sequences"] == ["03", "04"] and held["num_scans"] == 40
+    assert {e["sequence"] for e in held["entries"]} == {"03", "04"}
+    assert subsets.make_heldout(index, "train", subset, 20, "subset.json")["excludes"]["sequences"] == ["04"]
+    pool = subsets.make_pool(index, "train", subset, 30, "subset.json", held, "heldout.json")
+    assert {e["sequence"] for e in pool["entries"]} == {"00", "01", "02"}  # never a held-out sequence
+    assert pool["excludes"]["heldout_sequences"] == ["03", "04"]
+    assert not {e["points"] for e in pool["entries"]} & {e["points"] for e in subset["entries"]}
+    with pytest.raises(InputError, match="148 scans outside the subset subset.json and the sequences"):
+        subsets.make_pool(index, "train", subset, 149, "subset.json", held, "heldout.json")
+    with pytest.raises(InputError, match="holds 100 scans in sequences without a scan of subset.json"):
+        subsets.make_heldout(index, "train", subset, 101, "subset.json")
+    (tmp_path / "plain").mkdir()
+    with pytest.raises(InputError, match="names no sequence"):
+        subsets.make_heldout(_index(tmp_path / "plain", 200), "train", subset, 5, "subset.json")
+
+
+def test_make_subset_cli_writes_a_heldout_set_and_a_pool_outside_it(tmp_path):
+    index = _sequence_index(tmp_path, [50, 50, 50, 30, 20])
+    out = {name: str(tmp_path / f"{name}.json") for name in ("s", "h", "p", "bad")}
+    assert main(["make-subset", "--index", str(index), "--percent", "1", "--out", out["s"]]) == 0
+    assert main(["make-subset", "--index", str(index), "--exclude", out["s"], "--whole-sequences", "--count", "20",
+                 "--out", out["h"]]) == 0
+    assert main(["make-subset", "--index", str(index), "--exclude", out["s"], "--heldout", out["h"], "--count", "8",
+                 "--out", out["p"]]) == 0
+    assert not {e["sequence"] for e in subsets.read_subset(out["p"])["entries"]} & {"04"}
+    assert main(["make-subset", "--index", str(index), "--percent", "1", "--whole-sequences", "--out", out["bad"]]) != 0
+    assert not (tmp_path / "bad.json").exists()
+
+
 def test_make_subset_cli_needs_percent_or_a_pool_request(tmp_path):
     index = _index(tmp_path, 50)
     assert main(["make-subset", "--index", str(index), "--percent", "10", "--out", str(tmp_path / "s.json")]) == 0

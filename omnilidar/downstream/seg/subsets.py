@@ -68,31 +68,84 @@ def make_subset(index_path: str | Path, split: str, fraction: float) -> dict:
     }
 
 
-def make_pool(index_path: str | Path, split: str, exclude: dict, count: int, exclude_path: str | Path) -> dict:
-    """``count`` further scans of ``split`` that are not in the subset ``exclude``, spread evenly
-    over the rest of the split in index order (no randomness): the real scans the decomposition
-    study adds with their true labels, with the labeler's labels, or unlabelled (LaserMix)."""
+def _split_entries(index_path: str | Path, split: str) -> tuple[dict, list[dict]]:
     index = read_index(index_path)
     entries = index.get("splits", {}).get(split)
     if entries is None:
         raise InputError(index_path, f"has no split {split!r}")
-    taken = {e["points"] for e in exclude["entries"]}
-    rest = [e for e in entries if e["points"] not in taken]
-    if count < 1 or count > len(rest):
-        raise InputError(index_path, f"split {split} holds {len(rest)} scans outside the subset {exclude_path}; "
-                                     f"cannot take {count}")
-    missing = [e["points"] for e in rest if not e.get("labels")]
-    if missing:
-        raise InputError(missing[0], f"scan of split {split} has no label file; the pool needs true labels")
+    return index, entries
+
+
+def _evenly_spread(rest: list[dict], count: int) -> list[dict]:
+    """``count`` of ``rest`` at even steps in index order (no randomness)."""
     picks = np.unique(np.floor(np.arange(count) * len(rest) / count).astype(int))
-    chosen = [rest[i] for i in picks]
+    return [rest[i] for i in picks]
+
+
+def _labelled(entries: list[dict], split: str, what: str) -> None:
+    missing = [e["points"] for e in entries if not e.get("labels")]
+    if missing:
+        raise InputError(missing[0], f"scan of split {split} has no label file; {what} needs true labels")
+
+
+def _sequence_of(entry: dict, index_path: str | Path) -> str:
+    if entry.get("sequence") is None:
+        raise InputError(index_path, f"entry {entry['points']} names no sequence; held-out sets take whole sequences")
+    return str(entry["sequence"])
+
+
+def _pick_document(index: dict, index_path, split: str, entries: list[dict], chosen: list[dict], excludes: dict) -> dict:
     return {
         "format": FORMAT, "dataset": index.get("dataset"), "split": split,
         "fraction": len(chosen) / len(entries), "every": None, "num_scans": len(chosen),
         "source_scans": len(entries), "index_digest": digest(index_path),
-        "excludes": {"subset": str(exclude_path), "num_scans": exclude["num_scans"]},
-        "entries": chosen,
+        "excludes": excludes, "entries": chosen,
     }
+
+
+def make_pool(index_path: str | Path, split: str, exclude: dict, count: int, exclude_path: str | Path,
+              heldout: dict | None = None, heldout_path: str | Path | None = None) -> dict:
+    """``count`` further scans of ``split`` that are not in the subset ``exclude`` (nor in any sequence
+    of ``heldout``), spread evenly over the rest of the split in index order (no randomness): the real
+    scans the decomposition study adds with their true labels, with the labeler's labels, or
+    unlabelled (LaserMix)."""
+    index, entries = _split_entries(index_path, split)
+    taken = {e["points"] for e in exclude["entries"]}
+    held = set()
+    if heldout:
+        held = set(heldout.get("excludes", {}).get("sequences") or
+                   (_sequence_of(e, heldout_path) for e in heldout["entries"]))
+    rest = [e for e in entries if e["points"] not in taken and (not held or _sequence_of(e, index_path) not in held)]
+    outside = f"the subset {exclude_path}" + (f" and the sequences of {heldout_path}" if held else "")
+    if count < 1 or count > len(rest):
+        raise InputError(index_path, f"split {split} holds {len(rest)} scans outside {outside}; cannot take {count}")
+    _labelled(rest, split, "the pool")
+    excludes = {"subset": str(exclude_path), "num_scans": exclude["num_scans"]}
+    if held:
+        excludes["heldout_sequences"] = sorted(held)
+    return _pick_document(index, index_path, split, entries, _evenly_spread(rest, count), excludes)
+
+
+def make_heldout(index_path: str | Path, split: str, exclude: dict, count: int, exclude_path: str | Path) -> dict:
+    """``count`` scans of whole sequences of ``split`` that hold no scan of ``exclude``, taken from the
+    split's last sequences (as many as hold ``count`` scans) and spread evenly over them: train scans
+    a study's runs never see, from scenes none of them trains on, as val's own sequence is. The
+    decomposition study checks its regime there (never on val); its pool leaves these sequences out."""
+    index, entries = _split_entries(index_path, split)
+    taken = {_sequence_of(e, index_path) for e in exclude["entries"]}
+    order = list(dict.fromkeys(_sequence_of(e, index_path) for e in entries))
+    chosen_sequences, held = [], []
+    for sequence in reversed([s for s in order if s not in taken]):
+        if len(held) >= count:
+            break
+        chosen_sequences.insert(0, sequence)
+        held = [e for e in entries if e["sequence"] in chosen_sequences]
+    if count < 1 or count > len(held):
+        raise InputError(index_path, f"split {split} holds {len(held)} scans in sequences without a scan of "
+                                     f"{exclude_path}; cannot take {count}")
+    _labelled(held, split, "the held-out set")
+    excludes = {"subset": str(exclude_path), "num_scans": exclude["num_scans"], "sequences": chosen_sequences}
+    return _pick_document(index, index_path, split, entries, _evenly_spread(held, count), excludes)
 
 
 def write_subset(subset: dict, path: str | Path) -> None:
