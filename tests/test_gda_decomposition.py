@@ -222,6 +222,10 @@ def test_study_gains_are_paired_by_seed_and_name_the_costliest_link():
     assert study["costliest_link"] == "samples"
     # The regime is checked on held-out train scans, never on val: without them there is no verdict.
     assert study["ceiling_clears_two_std"] is None and study["regime_check"]["set"] is None
+    # The same test on val is reported beside it (gain 0.10 against 2 x the ceiling's 0.01 std).
+    assert study["ceiling_on_evalset"]["ceiling_gain"]["mean"] == pytest.approx(0.10)
+    assert study["ceiling_on_evalset"]["two_std"] == pytest.approx(2 * float(np.std([0.10, 0.12, 0.11], ddof=1)))
+    assert study["ceiling_on_evalset"]["ceiling_clears_two_std"] is True
     heldout = {"supervised_only": [0.30, 0.31, 0.32], "real_truth": [0.40, 0.30, 0.45]}
     for e in evals:
         role = e["train"]["info"]["role"]
