@@ -191,8 +191,7 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     from workflow_helpers import snakemake
 
     jobs = _jobs(workdir, "results/gda_decomposition.json")
-    # 5 rows and the default config's two attempts on the generated row (confident, share25).
-    assert jobs["train_study"] == (5 + 2) * 2 * 3 and jobs["evaluate_segmentor"] == 42
+    assert jobs["train_study"] == 5 * 2 * 3 and jobs["evaluate_segmentor"] == 30
     assert jobs["evaluate_labeler"] == jobs["make_pool"] == jobs["pseudo_label_pool"] == jobs["gda_decomposition"] == 1
     assert "train_supervised" not in jobs and "train_gda" not in jobs  # the quick-start runs are not the study's
     assert jobs["make_heldout"] == 1  # whole train sequences outside subset and pool: the regime is checked there
@@ -202,17 +201,16 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
                     "--configfile", "config/config.yaml", "study.yaml").stdout
     runs = [line for line in out.splitlines() if "omnilidar train-segmentor" in line]
-    assert len(runs) == 42 and all('"iterations": 123' in line for line in runs)
+    assert len(runs) == 30 and all('"iterations": 123' in line for line in runs)
     lasermix = [line for line in runs if "--lasermix" in line]
     assert len(lasermix) == 6 and all("--pool-labels data/pseudo_labels/pool/semantickitti_1pct_pool48" in line
                                       for line in lasermix)
-    assert sum("--max-generated 48" in line and "data/samples/Vehicle/shard_2" in line for line in runs) == 6 * 3
-    assert sum('"min_confidence": 0.6' in line for line in runs) == 6  # the default attempt "confident"
+    assert sum("--max-generated 48" in line and "data/samples/Vehicle/shard_2" in line for line in runs) == 6
     assert "spvcnn_1pct_study-truth48_seed2.pt" in out and "minkunet_1pct_study-real48_seed0.pt" in out
     evaluations = [line for line in out.splitlines() if "omnilidar evaluate-segmentor" in line and "study-" in line]
     scored_heldout = [line for line in evaluations
                       if "--split val --subset-set heldout=data/subsets/semantickitti_1pct_heldout20.json" in line]
-    assert len(evaluations) == 42 and len(scored_heldout) == 30  # the attempts' runs are scored on val only
+    assert len(evaluations) == len(scored_heldout) == 30
     assert "--exclude data/subsets/semantickitti_1pct.json --whole-sequences --count 20" in out
     assert ("--exclude data/subsets/semantickitti_1pct.json --heldout data/subsets/semantickitti_1pct_heldout20.json "
             "--count 48" in out)
@@ -221,17 +219,16 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
                          "--configfile", "config/config.yaml", "study.yaml").stdout
     trains = [line for line in headline.splitlines() if "omnilidar train-segmentor" in line]
     assert len(trains) == 4 and not any('"iterations": 123' in line for line in trains)
-    # Each attempt trains the generated row again, on its own overrides, and joins the result.
-    (workdir / "attempt.yaml").write_text(
-        "downstream: {experiments: {gda_decomposition: {attempts: {share10: {mixing: {mode: ratio, "
-        "generated_share: 0.1}}}}}}\n")
+    # Each attempt (the shipped remedies file) trains the generated row again, on its own overrides,
+    # is scored on val, and joins the result.
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
-                    "--configfile", "config/config.yaml", "attempt.yaml").stdout
+                    "--configfile", "config/config.yaml", "config/decomposition_attempts.yaml").stdout
     tried = [line for line in out.splitlines()
-             if "omnilidar train-segmentor" in line and "study-gda-vehicle-share10" in line]
-    assert len(tried) == 6 and all('"generated_share": 0.1' in line and "--max-generated 48" in line for line in tried)
+             if "omnilidar train-segmentor" in line and "study-gda-vehicle-share25" in line]
+    assert len(tried) == 6 and all('"generated_share": 0.25' in line and "--max-generated 48" in line for line in tried)
+    assert sum('"min_confidence": 0.6' in line for line in out.splitlines() if "omnilidar train-segmentor" in line) == 6
     result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
-    assert result.count("--attempt share10=") == result.count("--attempt share25=") == 6
+    assert result.count("--attempt share25=") == result.count("--attempt confident=") == 6
 
 
 def test_a_generator_attempt_samples_and_labels_from_its_own_generator(workdir):
@@ -247,7 +244,7 @@ def test_a_generator_attempt_samples_and_labels_from_its_own_generator(workdir):
     jobs = _jobs(workdir, *args)
     assert jobs["train_generator"] == 1 and jobs["train_generator_attempt"] == 1
     assert jobs["sample_attempt"] == jobs["sample_domain"] >= 1  # the Vehicle shards holding N scans, twice
-    assert jobs["train_study"] == 5 * 3 + 2 * 3 + 3  # rows, the default attempts, this one
+    assert jobs["train_study"] == 5 * 3 + 3
     out = snakemake(workdir, "--dry-run", "--printshellcmds", *args).stdout
     train = next(line for line in out.splitlines() if "omnilidar train-generator" in line and "attempt-long" in line)
     assert '"iterations": 1500' in train and "--preset full" in train and "--work-dir work/generator/attempt-long" in train
@@ -277,9 +274,8 @@ def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simul
     from workflow_helpers import snakemake
 
     jobs = _jobs(workdir, "results/gda_decomposition.json", "results/gda_decomposition_fog.json")
-    # real, truth, pseudo, LaserMix, GDA vehicle and its two default attempts; GDA fog, simulated fog
-    assert jobs["train_study"] == (5 + 2 + 2) * 2 * 3
-    assert jobs["evaluate_segmentor"] == 42 + 36 and jobs["simulate_pool"] == 1
+    assert jobs["train_study"] == (5 + 2) * 2 * 3  # real, truth, pseudo, LaserMix, GDA vehicle; GDA fog, simulated fog
+    assert jobs["evaluate_segmentor"] == 30 + 36 and jobs["simulate_pool"] == 1
     assert jobs["build_corrupted"] == 3  # fog at three severities, nothing else
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition_fog.json").stdout
     assert "--pool data/subsets/simulated/fog_1pct_pool48/pool.json --pool-source simulated" in out
