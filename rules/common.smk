@@ -183,11 +183,12 @@ def synthetic_shard(name, shard_dir):
     return shard_dir[len(before) : len(shard_dir) - len(after)]
 
 
-def sample_shards(domain):
-    """Sample shard directories of one domain (scans_per_domain split into shards)."""
+def sample_shards(domain, scans=None):
+    """Sample shard directories holding a domain's first ``scans`` scans (default scans_per_domain;
+    a larger count names the shards past it, which the sample rule makes alike)."""
     sampling = config["generator"]["sampling"]
-    count = -(-sampling["scans_per_domain"] // sampling["scans_per_shard"])
-    return [f"{DATA}/samples/{domain}/shard_{k}" for k in range(count)]
+    scans = sampling["scans_per_domain"] if scans is None else int(scans)
+    return [f"{DATA}/samples/{domain}/shard_{k}" for k in range(-(-scans // sampling["scans_per_shard"]))]
 
 
 # Keys of the domains section that are settings, not domains (omnilidar.domains.spec).
@@ -321,14 +322,14 @@ def gda_domains(w):
     return w.domains.split("+")
 
 
-def domain_sample_shards(name):
+def domain_sample_shards(name, scans=None):
     """Sample shards of a domain given by its config key (samples are named by label)."""
-    return sample_shards(domain_label(name))
+    return sample_shards(domain_label(name), scans)
 
 
-def pseudo_label_shards(name):
+def pseudo_label_shards(name, scans=None):
     """Pseudo-label shard of every sample shard of a domain (same label and shard names)."""
-    return [d.replace(f"{DATA}/samples/", f"{PSEUDO}/", 1) for d in domain_sample_shards(name)]
+    return [d.replace(f"{DATA}/samples/", f"{PSEUDO}/", 1) for d in domain_sample_shards(name, scans)]
 
 
 def eval_sets(w):
@@ -400,22 +401,6 @@ def curve_counts():
     unique and sorted; 0 is the supervised-only run."""
     cap = config["generator"]["sampling"]["scans_per_domain"]
     return sorted({min(int(n), cap) for n in EXPERIMENTS["gda_curve"]["generated_scans"]})
-
-
-def _shards_holding(count):
-    """How many leading shards hold the first ``count`` scans of a domain."""
-    return -(-int(count) // config["generator"]["sampling"]["scans_per_shard"])
-
-
-def curve_shards(name, count):
-    """The first sample shards of a domain (config key): those holding its first ``count`` scans (past
-    scans_per_domain when ``count`` asks for more)."""
-    return [f"{DATA}/samples/{domain_label(name)}/shard_{k}" for k in range(_shards_holding(count))]
-
-
-def curve_pseudo_labels(name, count):
-    """Their pseudo-label shards."""
-    return [d.replace(f"{DATA}/samples/", f"{PSEUDO}/", 1) for d in curve_shards(name, count)]
 
 
 CURVE_SERIES_ROW = {"real_truth": "truth", "real_pseudo": "pseudo"}
@@ -552,8 +537,8 @@ def study_run_inputs(w):
     if kind in ("pseudo", "lasermix"):
         inputs["labels"] = pool_labels_dir(w.pct, w.scans)
     if kind == "gda":
-        inputs["samples"] = curve_shards(domain, w.scans)
-        inputs["pseudo"] = curve_pseudo_labels(domain, w.scans)
+        inputs["samples"] = domain_sample_shards(domain, w.scans)
+        inputs["pseudo"] = pseudo_label_shards(domain, w.scans)
         if attempt in GENERATOR_ATTEMPTS:
             inputs["samples"] = attempt_dirs(attempt, inputs["samples"], f"{DATA}/samples")
             inputs["pseudo"] = attempt_dirs(attempt, inputs["pseudo"], PSEUDO)

@@ -244,8 +244,8 @@ rule train_gda_curve:
     scratch. Only the shards holding those scans are inputs; the checkpoint records N."""
     input:
         subset=f"{SUBSETS}/{{dataset}}_{{pct}}pct.json",
-        samples=lambda w: curve_shards(w.domain, w.scans),
-        pseudo=lambda w: curve_pseudo_labels(w.domain, w.scans),
+        samples=lambda w: domain_sample_shards(w.domain, w.scans),
+        pseudo=lambda w: pseudo_label_shards(w.domain, w.scans),
     output:
         f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.pt",
     wildcard_constraints:
@@ -520,8 +520,8 @@ rule gda_curve:
     and sampling and pseudo-labelling seconds per generated scan as measured on the shards."""
     input:
         evaluations=curve_evaluations(),
-        samples=curve_shards(GDA_CURVE["domain"], max(curve_counts())),
-        pseudo=curve_pseudo_labels(GDA_CURVE["domain"], max(curve_counts())),
+        samples=domain_sample_shards(GDA_CURVE["domain"], max(curve_counts())),
+        pseudo=pseudo_label_shards(GDA_CURVE["domain"], max(curve_counts())),
         labeler=LABELER_VAL,
     output:
         json="results/gda_curve.json",

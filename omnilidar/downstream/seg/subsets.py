@@ -133,13 +133,15 @@ def make_heldout(index_path: str | Path, split: str, exclude: dict, count: int, 
     decomposition study checks its regime there (never on val); its pool leaves these sequences out."""
     index, entries = _split_entries(index_path, split)
     taken = {_sequence_of(e, index_path) for e in exclude["entries"]}
-    order = list(dict.fromkeys(_sequence_of(e, index_path) for e in entries))
+    by_sequence: dict[str, list[dict]] = {}
+    for e in entries:
+        by_sequence.setdefault(_sequence_of(e, index_path), []).append(e)
     chosen_sequences, held = [], []
-    for sequence in reversed([s for s in order if s not in taken]):
+    for sequence in reversed([q for q in by_sequence if q not in taken]):
         if len(held) >= count:
             break
         chosen_sequences.insert(0, sequence)
-        held = [e for e in entries if e["sequence"] in chosen_sequences]
+        held = by_sequence[sequence] + held
     if count < 1 or count > len(held):
         raise InputError(index_path, f"split {split} holds {len(held)} scans in sequences without a scan of "
                                      f"{exclude_path}; cannot take {count}")
