@@ -3,8 +3,12 @@
     python benchmarks/bench_generator.py                 # embedded default config on this machine
     python benchmarks/bench_generator.py --paper --device cuda --batch 16 \
         --samplers ddpm:256 dpmpp_2m:32                  # paper scale on a GPU (the paper: 3.52 s/frame, H100)
+    python benchmarks/bench_generator.py --geometries 32x256 64x512 64x512:128 64x1024:128 \
+        --samplers dpmpp_2m:20                           # what resolution and azimuth-window training cost
 
-Prints medians over --repeats runs and the ratio of each sampler setting to the first one.
+Prints medians over --repeats runs and the ratio of each sampler setting to the first one;
+with several --geometries (HxW, or HxW:C for training on C-column azimuth windows) each
+geometry's training step and sampling time, and their ratios to the first geometry.
 Random weights and random prompt tokens: speed does not depend on them.
 """
 
@@ -53,19 +57,40 @@ def main() -> None:
     ap.add_argument("--samplers", nargs="*", default=["ddpm:20", "ddim:20", "dpmpp_2m:10", "dpmpp_2m:20", "dpmpp_2m:50"],
                     help="name:steps pairs")
     ap.add_argument("--bf16", action="store_true", help="bf16 autocast (CUDA)")
+    ap.add_argument("--geometries", nargs="*", default=[],
+                    help="HxW or HxW:CROP image geometries to compare (default: the config's)")
     args = ap.parse_args()
+    geometries = args.geometries or [None]
+    first = None
+    for geometry in geometries:
+        result = bench_geometry(args, geometry)
+        first = first or result
+        if len(geometries) > 1:
+            print(f"  {geometry}: train step ratio {result[0] / first[0]:.2f}, "
+                  f"sampling ratio {result[1] / first[1]:.2f} (to {geometries[0]})")
+
+
+def bench_geometry(args, geometry: str | None) -> tuple[float, float]:
+    """Time one geometry; returns (median train step, median s/scan of the first sampler)."""
 
     device = torch.device(args.device)
     settings = copy.deepcopy(section_defaults("generator"))
     if args.paper:
         _merge(settings, PAPER)
+    if geometry:
+        size, _, crop = geometry.partition(":")
+        height, width = (int(v) for v in size.split("x"))
+        settings["range_image"].update(height=height, width=width)
+        settings["training"]["crop_width"] = int(crop) if crop else None
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     b_train = args.batch or settings["training"]["batch_size"]
     b_sample = args.batch or settings["sampling"]["batch_size"]
     text_dim, n_tok, n_dom = 384, 16, 8
     torch.manual_seed(0)
     den = build_denoiser(settings, text_dim, n_dom).to(device)
-    print(f"config: {'paper' if args.paper else 'embedded default'} {h}x{w}, "
+    crop = settings["training"].get("crop_width")
+    print(f"config: {'paper' if args.paper else 'embedded default'} {h}x{w}"
+          f"{f' (training on {crop}-column windows)' if crop else ''}, "
           f"{count_parameters(den) / 1e6:.2f} M parameters, device {device}, threads {torch.get_num_threads()}")
 
     tokens = torch.randn(n_dom * 3, n_tok, text_dim)
@@ -97,7 +122,7 @@ def main() -> None:
     del opt, model
 
     den.eval()
-    base = None
+    base = first = None
     for spec in args.samplers:
         name, steps = spec.split(":")
         steps = int(steps)
@@ -111,8 +136,10 @@ def main() -> None:
             runs.append((time.perf_counter() - t0) / b_sample)
         per_scan = statistics.median(runs)
         base = base or per_scan
+        first = first or per_scan
         print(f"sample {name:>8} {steps:4d} steps (batch {b_sample}): median {per_scan:.3f} s/scan  "
               f"ratio {per_scan / base:.2f}")
+    return step, first
 
 
 if __name__ == "__main__":

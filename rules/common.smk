@@ -318,6 +318,12 @@ def _warn_mixed_data():
 _warn_mixed_data()
 
 
+# Domains of a GDA run joined by '+' (only configured names, so gda-vehicle_seed1 is seed 1 of
+# gda-vehicle, never a domain called vehicle_seed1).
+_DOMAIN_ALTERNATIVES = f"(?:{'|'.join(DOMAIN_NAMES)})"
+GDA_DOMAINS_PATTERN = rf"{_DOMAIN_ALTERNATIVES}(?:\+{_DOMAIN_ALTERNATIVES})*"
+
+
 def gda_domains(w):
     return w.domains.split("+")
 
@@ -439,7 +445,10 @@ WEATHER_STUDY = DECOMPOSITION["weather"]
 # generated row names its domain (gda-<domain>, an attempt gda-<domain>-<attempt>), the simulated
 # row of the weather study too (sim-<domain>).
 DECOMPOSITION_RUNS = {"supervised_only": "real", "real_truth": "truth", "real_pseudo": "pseudo",
-                      "generated": f"gda-{DECOMPOSITION['domain']}", "lasermix": "lasermix"}
+                      "generated": f"gda-{DECOMPOSITION['domain']}", "lasermix": "lasermix",
+                      # the pool through the generator's range image and back: true labels, the labeler's
+                      "round_trip_truth": f"trip-{DECOMPOSITION['domain']}",
+                      "round_trip_pseudo": f"trippseudo-{DECOMPOSITION['domain']}"}
 # Kind of study run -> the train-segmentor arguments it adds.
 STUDY_FLAGS = {
     "real": "",
@@ -448,6 +457,8 @@ STUDY_FLAGS = {
     "lasermix": "--pool {input.pool} --pool-labels {input.labels} --lasermix",
     "gda": "--samples {input.samples} --pseudo-labels {input.pseudo} --domains {domain} --max-generated {scans}",
     "sim": "--pool {input.pool}/pool.json --pool-source simulated",
+    "trip": "--pool {input.pool}/pool.json --pool-source round_trip",
+    "trippseudo": "--pool {input.pool}/pool.json --pool-source round_trip --pool-labels {input.labels}",
 }
 
 
@@ -459,15 +470,26 @@ def study_domains():
 def study_row_pattern():
     """Wildcard pattern of a study run's row."""
     rows = ["real", "truth", "pseudo", "lasermix"]
-    rows += [f"gda-{d}-{a}" for d in study_domains() for a in DECOMPOSITION["attempts"]]
+    rows += [f"gda-{d}-{a}" for d in study_domains() for a in STUDY_VARIANTS]
     rows += [f"gda-{d}" for d in study_domains()]
     rows += [f"sim-{WEATHER_STUDY['domain']}"] if WEATHER_STUDY["domain"] else []
+    rows += [f"trip-{DECOMPOSITION['domain']}", f"trippseudo-{DECOMPOSITION['domain']}"]
     return "|".join(rows)
 
 
 def simulated_pool_dir(domain, pct, scans):
     """The pool's real scans run through a domain's scene (simulate-pool)."""
     return f"{DATA}/subsets/simulated/{domain}_{pct}pct_pool{scans}"
+
+
+def round_trip_pool_dir(domain, pct, scans):
+    """The pool's real scans through the domain's range image and back (round-trip-pool)."""
+    return f"{DATA}/subsets/round_trip/{domain}_{pct}pct_pool{scans}"
+
+
+def round_trip_labels_dir(domain, pct, scans):
+    """The labeler's labels of the round-tripped pool (pseudo-label --pool)."""
+    return f"{PSEUDO}/pool/round_trip_{domain}_{pct}pct_pool{scans}"
 
 
 def study_settings(row):
@@ -478,17 +500,39 @@ def study_settings(row):
     merged = deep_merge({k: DOWNSTREAM[k] for k in (*TRAINING_KEYS, "mixing")}, DECOMPOSITION["training"])
     parts = row.split("-")
     if parts[0] == "gda" and len(parts) == 3:
-        overrides = {k: v for k, v in DECOMPOSITION["attempts"][parts[2]].items() if k != "generator"}
+        overrides = {k: v for k, v in STUDY_VARIANTS[parts[2]].items() if k != "generator"}
         merged = deep_merge(merged, overrides)
     return json.dumps(merged, sort_keys=True)
 
 
-# Attempts with a `generator` key sample the generated row from their own generator (the
+# The budget study (downstream.experiments.gda_budget): one generator per training budget, each a
+# variant of the decomposition's generated row (gda-<domain>-budget<N>); the budget equal to the
+# main generator's iterations is the main generator's row.
+BUDGET = EXPERIMENTS["gda_budget"]
+MAIN_GENERATOR_ITERATIONS = config["generator"]["training"]["iterations"]
+BUDGET_VARIANTS = {f"budget{n}": {"generator": {"training": {"iterations": n}}}
+                   for n in BUDGET["iterations"] if n != MAIN_GENERATOR_ITERATIONS}
+# Every variant of the generated row: the decomposition's attempts and the budgets.
+STUDY_VARIANTS = {**DECOMPOSITION["attempts"], **BUDGET_VARIANTS}
+
+
+def budget_row(iterations):
+    """The study row of the generator trained ``iterations`` steps."""
+    domain = DECOMPOSITION["domain"]
+    return f"gda-{domain}" if iterations == MAIN_GENERATOR_ITERATIONS else f"gda-{domain}-budget{iterations}"
+
+
+def budget_variant(iterations):
+    """The variant name of a budget's generator, samples and labels; None for the main generator."""
+    return None if iterations == MAIN_GENERATOR_ITERATIONS else f"budget{iterations}"
+
+
+# Variants with a `generator` key sample the generated row from their own generator (the
 # generator section with those keys laid over it, e.g. a longer run); its samples and their
 # pseudo-labels live under attempt-<name>/ beside the main ones, with the same shard layout.
-GENERATOR_ATTEMPTS = [name for name, a in DECOMPOSITION["attempts"].items() if "generator" in a]
+GENERATOR_ATTEMPTS = [name for name, a in STUDY_VARIANTS.items() if "generator" in a]
 for _name in GENERATOR_ATTEMPTS:
-    _sampling = DECOMPOSITION["attempts"][_name]["generator"].get("sampling", {})
+    _sampling = STUDY_VARIANTS[_name]["generator"].get("sampling", {})
     if {"scans_per_domain", "scans_per_shard"} & set(_sampling):
         sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name}.generator "
                  "may not change sampling.scans_per_domain or scans_per_shard (its samples keep the main shard layout).")
@@ -503,7 +547,7 @@ def attempt_generator_settings(name, drop=()):
     """The generator section with attempt ``name``'s generator keys laid over it, as one JSON value."""
     from omnilidar.dicts import deep_merge
 
-    merged = deep_merge(config["generator"], DECOMPOSITION["attempts"][name]["generator"])
+    merged = deep_merge(config["generator"], STUDY_VARIANTS[name]["generator"])
     return json.dumps({k: v for k, v in merged.items() if k not in drop}, sort_keys=True)
 
 
@@ -544,6 +588,10 @@ def study_run_inputs(w):
             inputs["pseudo"] = attempt_dirs(attempt, inputs["pseudo"], PSEUDO)
     if kind == "sim":
         inputs["pool"] = simulated_pool_dir(domain, w.pct, w.scans)
+    if kind in ("trip", "trippseudo"):
+        inputs["pool"] = round_trip_pool_dir(domain, w.pct, w.scans)
+    if kind == "trippseudo":
+        inputs["labels"] = round_trip_labels_dir(domain, w.pct, w.scans)
     return inputs
 
 
@@ -554,12 +602,37 @@ def heldout_file(pct=None):
     return f"{DATA}/subsets/semantickitti_{pct}pct_heldout{DECOMPOSITION['heldout_scans']}.json"
 
 
-def study_evaluations(rows, evalset):
-    """Evaluations (on ``evalset``) of the study runs of ``rows`` for every backbone and seed."""
+def study_evaluations(rows, evalset, backbones=None):
+    """Evaluations (on ``evalset``) of the study runs of ``rows`` for every backbone (default: the
+    study's) and seed."""
     d = DECOMPOSITION
     return [run_evaluation("semantickitti", b, d["percent"],
                            f"study-{row}{DECOMPOSITION_SCANS}_seed{config['seed'] + k}", evalset)
-            for b in d["backbones"] for row in rows for k in range(d["seeds"])]
+            for b in (backbones or d["backbones"]) for row in rows for k in range(d["seeds"])]
+
+
+def budget_reference_evaluations():
+    """The decomposition's supervised-only and pseudo-labelled real rows the budgets are read against."""
+    return study_evaluations(["real", "pseudo"], "heldout", [BUDGET["backbone"]])
+
+
+def budget_run_evaluations():
+    """ITERATIONS=EVALUATION of every budget's GDA runs (each seed)."""
+    return [f"{n}={path}" for n in BUDGET["iterations"]
+            for path in study_evaluations([budget_row(n)], "heldout", [BUDGET["backbone"]])]
+
+
+def budget_generator(iterations):
+    """The generator checkpoint trained ``iterations`` steps."""
+    variant = budget_variant(iterations)
+    return f"{GENERATOR}/full/model.pt" if variant is None else f"{GENERATOR}/attempt-{variant}/model.pt"
+
+
+def budget_samples(iterations):
+    """The first N samples of the decomposition's domain from that generator (shard folders)."""
+    shards = domain_sample_shards(DECOMPOSITION["domain"], DECOMPOSITION_SCANS)
+    variant = budget_variant(iterations)
+    return shards if variant is None else attempt_dirs(variant, shards, f"{DATA}/samples")
 
 
 def decomposition_evaluations():

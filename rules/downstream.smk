@@ -170,7 +170,7 @@ rule train_gda:
         dataset=r"semantickitti|nuscenes",
         backbone=r"minkunet|spvcnn",
         pct=r"\d+",
-        domains=r"[a-z0-9_]+(\+[a-z0-9_]+)*",
+        domains=GDA_DOMAINS_PATTERN,
     params:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=config["seed"],
@@ -221,7 +221,7 @@ use rule train_gda as train_gda_seed with:
         dataset=r"semantickitti|nuscenes",
         backbone=r"minkunet|spvcnn",
         pct=r"\d+",
-        domains=r"[a-z0-9_]+(\+[a-z0-9_]+)*",
+        domains=GDA_DOMAINS_PATTERN,
         seed=r"\d+",
     params:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
@@ -721,6 +721,126 @@ rule simulate_pool:
     shell:
         "omnilidar simulate-pool {wildcards.domain} --index {input.index} --pool {input.pool} "
         "--settings {params.settings:q} --seed {params.seed} --out {output} > {log} 2>&1"
+
+
+BUDGET_WEIGHTS = extractor_weights(BUDGET["metrics"])
+
+
+rule budget_quality:
+    """One budget's samples against the held-out real scans (FRD, JSD, MMD)."""
+    input:
+        subset=heldout_file(),
+        samples=lambda w: budget_samples(int(w.iterations)),
+        weights=list(BUDGET_WEIGHTS.values()),
+    output:
+        f"{DATA}/budget/quality_{{iterations}}.json",
+    wildcard_constraints:
+        iterations=r"\d+",
+    params:
+        range_image=json.dumps(config["generator"]["range_image"], sort_keys=True),
+        metrics=" ".join(BUDGET["metrics"]),
+        scans=min(BUDGET["quality_scans"], DECOMPOSITION_SCANS, DECOMPOSITION["heldout_scans"]),
+        weights=weights_args(BUDGET_WEIGHTS),
+        code=code("sample-quality"),
+    log:
+        "logs/downstream/budget_quality_{iterations}.log",
+    conda:
+        ENV
+    resources:
+        **job_resources("gda_result"),
+    shell:
+        "omnilidar sample-quality --subset {input.subset} --samples {input.samples} --scans {params.scans} "
+        "--metrics {params.metrics} {params.weights} --range-image {params.range_image:q} "
+        "--out {output} > {log} 2>&1"
+
+
+rule gda_budget:
+    """What GDA gains for the generator's training compute: one generator per budget, its samples'
+    quality, and the GDA gain over supervised-only seed by seed, beside pseudo-labelled real scans."""
+    input:
+        evaluations=budget_reference_evaluations(),
+        runs=[pair.split("=", 1)[1] for pair in budget_run_evaluations()],
+        generators=[budget_generator(n) for n in BUDGET["iterations"]],
+        quality=expand(f"{DATA}/budget/quality_{{n}}.json", n=BUDGET["iterations"]),
+        labeler=LABELER_VAL,
+    output:
+        json="results/gda_budget.json",
+        table="results/tables/gda_budget.html",
+        figure="results/figures/gda_budget.png",
+    params:
+        settings=settings("downstream", drop=("det",)),
+        seed=config["seed"],
+        data_source=data_source("semantickitti"),
+        budgets=" ".join(f"--budget {n}={budget_generator(n)}={DATA}/budget/quality_{n}.json"
+                         for n in BUDGET["iterations"]),
+        runs=" ".join(f"--run {pair}" for pair in budget_run_evaluations()),
+        code=result_code("gda-budget"),
+    log:
+        "logs/downstream/gda_budget.log",
+    benchmark:
+        "benchmarks/out/downstream/gda_budget.tsv"
+    conda:
+        ENV
+    resources:
+        **job_resources("gda_result"),
+    shell:
+        with_table(
+            "omnilidar gda-budget --evaluations {input.evaluations} {params.budgets} {params.runs} "
+            "--labeler-evaluation {input.labeler} --settings {params.settings:q} --seed {params.seed} "
+            "--data-source {params.data_source:q} --out {output.json} --figure {output.figure} > {log} 2>&1"
+        )
+
+
+rule round_trip_pool:
+    """The decomposition pool's real scans through the domain's range image and back, true labels
+    carried: what a perfect generator of this image size would give (the resolution link)."""
+    input:
+        index=f"{DATA}/index/semantickitti.json",
+        pool=pool_file("{pct}", "{scans}"),
+    output:
+        directory(round_trip_pool_dir("{domain}", "{pct}", "{scans}")),
+    wildcard_constraints:
+        domain="|".join(DOMAIN_NAMES),
+        pct=r"\d+",
+        scans=r"[1-9]\d*",
+    params:
+        settings=lambda w: domain_settings(w.domain),
+        code=code("round-trip-pool"),
+    log:
+        "logs/downstream/round_trip_pool_{domain}_{pct}pct_{scans}.log",
+    conda:
+        ENV
+    resources:
+        **job_resources("simulate_pool"),
+    shell:
+        "omnilidar round-trip-pool {wildcards.domain} --index {input.index} --pool {input.pool} "
+        "--settings {params.settings:q} --out {output} > {log} 2>&1"
+
+
+rule pseudo_label_round_trip:
+    """The labeler's labels of the round-tripped pool (the labels link), with their accuracy."""
+    input:
+        labeler=LABELER,
+        pool=round_trip_pool_dir("{domain}", "{pct}", "{scans}"),
+    output:
+        directory(round_trip_labels_dir("{domain}", "{pct}", "{scans}")),
+    wildcard_constraints:
+        domain="|".join(DOMAIN_NAMES),
+        pct=r"\d+",
+        scans=r"[1-9]\d*",
+    params:
+        settings=settings("downstream", "labeler"),
+        code=code("pseudo-label"),
+    log:
+        "logs/downstream/pseudo_labels/round_trip_{domain}_{pct}pct_{scans}.log",
+    conda:
+        ENV
+    threads: 1
+    resources:
+        **job_resources("pseudo_label"),
+    shell:
+        "omnilidar pseudo-label --labeler {input.labeler} --pool {input.pool}/pool.json "
+        "--settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
 
 
 if WEATHER_STUDY["domain"]:

@@ -28,7 +28,9 @@ def uses_cuda(device):
 
 def _train_seconds(iterations):
     tr = config["generator"]["training"]
-    per_step = RESOURCES["rates"]["train_step_s"] * tr["batch_size"] / 16 * _PIXELS
+    width = config["generator"]["range_image"]["width"]
+    windows = min(tr["crop_width"] or width, width) / width  # azimuth-window training costs its window
+    per_step = RESOURCES["rates"]["train_step_s"] * tr["batch_size"] / 16 * _PIXELS * windows
     return iterations * per_step / (RESOURCES["generator_gpus"] ** 0.9)  # ~90 % DDP scaling
 
 

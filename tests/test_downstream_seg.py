@@ -235,7 +235,22 @@ def test_gda_result_records_the_labelers_own_quality(tmp_path, capsys):
     labeler = json.loads((tmp_path / "r.json").read_text())["labeler"]
     assert labeler["val_miou"] == pytest.approx(0.45) and labeler["val_iou"]["car"] == pytest.approx(0.45)
     assert labeler["label_space"] == "semantickitti" and labeler["evaluation"] == paths[2]
-    assert "labeler (writes every pseudo-label): val mIoU 45.00" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert "labeler (writes every pseudo-label): val mIoU 45.00" in out.out and "WARNING" not in out.err
+    check = json.loads((tmp_path / "r.json").read_text())["labeler_check"]
+    assert check["compared"] and check["warning"] is None
+    assert check["students"]["minkunet"] == {"student_val_miou": 0.2, "student_seeds": 1, "labeler_val_miou": 0.45,
+                                             "labeler_stronger": True}
+    # A labeler weaker than the student it feeds: said in the JSON and on the terminal.
+    weak = json.loads(open(paths[2]).read())
+    weak["sets"]["val"]["miou"] = 0.15
+    (tmp_path / "weak.json").write_text(json.dumps(weak))
+    args.labeler_evaluation = str(tmp_path / "weak.json")
+    assert gda_result.run(args) == 0
+    check = json.loads((tmp_path / "r.json").read_text())["labeler_check"]
+    assert check["students"]["minkunet"]["labeler_stronger"] is False
+    assert "scores below the supervised-only minkunet (20.00)" in check["warning"]
+    assert "WARNING: the labeler (val mIoU 15.00) scores below" in capsys.readouterr().err
     # An evaluation without the val set is one clear error naming the file.
     bad = json.loads(open(paths[2]).read())
     bad["sets"] = {"fog/light": bad["sets"]["val"]}

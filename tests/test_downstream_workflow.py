@@ -68,7 +68,8 @@ def test_headline_dag(workdir):
     jobs = _jobs(workdir, "results/semkitti_1pct.json")
     assert jobs["train_labeler"] == 1 and jobs["evaluate_labeler"] == 1  # its own val scores join the result
     assert jobs["train_supervised"] == 2 and jobs["train_gda"] == 2  # MinkUNet, SPVCNN
-    assert jobs["evaluate_segmentor"] == 4
+    assert jobs["train_supervised_seed"] == jobs["train_gda_seed"] == 2  # and each with a second seed
+    assert jobs["evaluate_segmentor"] == 8
     assert jobs["make_subset"] == 1 and jobs["semkitti_result"] == 1
     assert jobs["pseudo_label"] == jobs["sample_domain"] >= 1
     # Only the Vehicle domain is sampled; nothing of nuScenes or the corrupted sets.
@@ -160,14 +161,15 @@ def _with_change(wd, cfg, change: dict):
 def test_downstream_change_reruns_only_runs_and_evaluation(completed):
     wd, cfg = completed
     jobs = _with_change(wd, cfg, {"downstream.schedule.iterations": 41})
-    assert set(jobs) == {"train_supervised", "train_gda", "evaluate_segmentor", "semkitti_result"}
+    assert set(jobs) == {"train_supervised", "train_supervised_seed", "train_gda", "train_gda_seed",
+                         "evaluate_segmentor", "semkitti_result"}  # two seeds per run
 
 
 def test_mixing_change_reruns_only_gda_runs(completed):
     wd, cfg = completed
     jobs = _with_change(wd, cfg, {"downstream.mixing.mode": "ratio"})
-    assert set(jobs) == {"train_gda", "evaluate_segmentor", "semkitti_result"}
-    assert jobs["evaluate_segmentor"] == 2
+    assert set(jobs) == {"train_gda", "train_gda_seed", "evaluate_segmentor", "semkitti_result"}
+    assert jobs["evaluate_segmentor"] == 4  # 2 backbones x 2 seeds
 
 
 def test_labeler_change_reruns_labeler_pseudo_labels_and_gda_not_supervised(completed):
@@ -182,16 +184,18 @@ def test_generator_change_spares_supervised_runs_and_labeler(completed):
     jobs = _with_change(wd, cfg, {"generator.sampling.steps": 21})
     assert {"sample_domain", "pseudo_label", "train_gda", "semkitti_result"} <= set(jobs)
     assert "train_supervised" not in jobs and "train_labeler" not in jobs and "evaluate_labeler" not in jobs
-    assert jobs["evaluate_segmentor"] == 2  # the GDA runs' evaluations only
+    assert jobs["evaluate_segmentor"] == 4  # the GDA runs' evaluations only (2 backbones x 2 seeds)
 
 
 def test_decomposition_plans_every_row_backbone_and_seed(workdir):
-    """results/gda_decomposition.json: 5 rows x 2 backbones x 3 seeds on the study's own regime, the
-    pool made once and labelled once; the generated row takes the first N sampled scans."""
+    """results/gda_decomposition.json: 7 rows x 2 backbones x 3 seeds on the study's own regime, the
+    pool made once and labelled once, sent once through the generator's range image and back (and
+    that labelled once); the generated row takes the first N sampled scans."""
     from workflow_helpers import snakemake
 
     jobs = _jobs(workdir, "results/gda_decomposition.json")
-    assert jobs["train_study"] == 5 * 2 * 3 and jobs["evaluate_segmentor"] == 30
+    assert jobs["train_study"] == 7 * 2 * 3 and jobs["evaluate_segmentor"] == 42
+    assert jobs["round_trip_pool"] == jobs["pseudo_label_round_trip"] == 1
     assert jobs["evaluate_labeler"] == jobs["make_pool"] == jobs["pseudo_label_pool"] == jobs["gda_decomposition"] == 1
     assert "train_supervised" not in jobs and "train_gda" not in jobs  # the quick-start runs are not the study's
     assert jobs["make_heldout"] == 1  # whole train sequences outside subset and pool: the regime is checked there
@@ -201,7 +205,12 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
                     "--configfile", "config/config.yaml", "study.yaml").stdout
     runs = [line for line in out.splitlines() if "omnilidar train-segmentor" in line]
-    assert len(runs) == 30 and all('"iterations": 123' in line for line in runs)
+    assert len(runs) == 42 and all('"iterations": 123' in line for line in runs)
+    trips = [line for line in runs if "--pool-source round_trip" in line]
+    assert len(trips) == 12
+    assert all("--pool data/subsets/round_trip/vehicle_1pct_pool48/pool.json" in line for line in trips)
+    assert sum("--pool-labels data/pseudo_labels/pool/round_trip_vehicle_1pct_pool48" in line for line in trips) == 6
+    assert "omnilidar round-trip-pool vehicle" in out and '"width": 512' in out
     lasermix = [line for line in runs if "--lasermix" in line]
     assert len(lasermix) == 6 and all("--pool-labels data/pseudo_labels/pool/semantickitti_1pct_pool48" in line
                                       for line in lasermix)
@@ -210,7 +219,7 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     evaluations = [line for line in out.splitlines() if "omnilidar evaluate-segmentor" in line and "study-" in line]
     scored_heldout = [line for line in evaluations
                       if "--split val --subset-set heldout=data/subsets/semantickitti_1pct_heldout20.json" in line]
-    assert len(evaluations) == len(scored_heldout) == 30
+    assert len(evaluations) == len(scored_heldout) == 42
     assert "--exclude data/subsets/semantickitti_1pct.json --whole-sequences --count 20" in out
     assert ("--exclude data/subsets/semantickitti_1pct.json --heldout data/subsets/semantickitti_1pct_heldout20.json "
             "--count 48" in out)
@@ -218,7 +227,7 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     headline = snakemake(workdir, "--dry-run", "--printshellcmds", "results/semkitti_1pct.json",
                          "--configfile", "config/config.yaml", "study.yaml").stdout
     trains = [line for line in headline.splitlines() if "omnilidar train-segmentor" in line]
-    assert len(trains) == 4 and not any('"iterations": 123' in line for line in trains)
+    assert len(trains) == 8 and not any('"iterations": 123' in line for line in trains)
     # Each attempt (the shipped remedies file) trains the generated row again, on its own overrides,
     # is scored on val, and joins the result.
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition.json",
@@ -244,7 +253,7 @@ def test_a_generator_attempt_samples_and_labels_from_its_own_generator(workdir):
     jobs = _jobs(workdir, *args)
     assert jobs["train_generator"] == 1 and jobs["train_generator_attempt"] == 1
     assert jobs["sample_attempt"] == jobs["sample_domain"] >= 1  # the Vehicle shards holding N scans, twice
-    assert jobs["train_study"] == 5 * 3 + 3
+    assert jobs["train_study"] == 7 * 3 + 3
     out = snakemake(workdir, "--dry-run", "--printshellcmds", *args).stdout
     train = next(line for line in out.splitlines() if "omnilidar train-generator" in line and "attempt-long" in line)
     assert '"iterations": 1500' in train and "--preset full" in train and "--work-dir work/generator/attempt-long" in train
@@ -274,11 +283,38 @@ def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simul
     from workflow_helpers import snakemake
 
     jobs = _jobs(workdir, "results/gda_decomposition.json", "results/gda_decomposition_fog.json")
-    assert jobs["train_study"] == (5 + 2) * 2 * 3  # real, truth, pseudo, LaserMix, GDA vehicle; GDA fog, simulated fog
-    assert jobs["evaluate_segmentor"] == 30 + 36 and jobs["simulate_pool"] == 1
+    # real, truth, pseudo, LaserMix, GDA vehicle, round trip (true, labeler); GDA fog, simulated fog
+    assert jobs["train_study"] == (7 + 2) * 2 * 3
+    assert jobs["evaluate_segmentor"] == 42 + 36 and jobs["simulate_pool"] == 1
     assert jobs["build_corrupted"] == 3  # fog at three severities, nothing else
     out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/gda_decomposition_fog.json").stdout
     assert "--pool data/subsets/simulated/fog_1pct_pool48/pool.json --pool-source simulated" in out
     assert "--domains fog --max-generated 48" in out
     result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
     assert "--evalset fog --domain fog" in result and "minkunet_1pct_study-truth48_seed0.fog.json" in result
+
+
+def test_budget_study_trains_one_generator_per_budget_and_reuses_the_main_one(workdir):
+    """results/gda_budget.json: a generator per budget (the main generator's own budget is the main
+    generator), each sampled, pseudo-labelled, trained with every seed and scored against held-out
+    real scans; supervised-only and pseudo-labelled real rows are the decomposition's runs."""
+    from workflow_helpers import snakemake
+
+    (workdir / "budget.yaml").write_text(
+        "downstream: {experiments: {gda_budget: {iterations: [30, 300, 3000], metrics: [JSD, MMD]}}}\n")
+    args = ("results/gda_budget.json", "--configfile", "config/config.yaml", "budget.yaml")
+    jobs = _jobs(workdir, *args)
+    assert jobs["train_generator"] == 1 and jobs["train_generator_attempt"] == 2  # 300 is the main generator
+    assert jobs["budget_quality"] == 3 and jobs["gda_budget"] == 1 and "train_extractor" not in jobs
+    assert jobs["train_study"] == (2 + 3) * 3  # supervised-only, pseudo-labelled real, three budgets; MinkUNet
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", *args).stdout
+    train = [line for line in out.splitlines() if "omnilidar train-generator" in line]
+    assert sorted(int(line.split('"iterations": ')[1].split(",")[0]) for line in train) == [30, 300, 3000]
+    result = next(line for line in out.splitlines() if "omnilidar gda-budget" in line)
+    assert "--budget 300=data/generator/full/model.pt=data/budget/quality_300.json" in result
+    assert "--budget 30=data/generator/attempt-budget30/model.pt" in result
+    assert result.count("--run 3000=") == 3 and "minkunet_1pct_study-gda-vehicle48_seed2" in result
+    assert "study-gda-vehicle-budget3000" in result and "spvcnn_1pct" not in result
+    quality = [line for line in out.splitlines() if "omnilidar sample-quality" in line]
+    assert len(quality) == 3 and all("--metrics JSD MMD" in line for line in quality)
+    assert any("--samples data/samples/attempt-budget30/Vehicle/shard_0" in line for line in quality)

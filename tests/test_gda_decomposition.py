@@ -389,3 +389,53 @@ def test_simulated_pool_digest_follows_its_scans(study_tree, tmp_path):
                  "--settings", "{}", "--seed", "0", "--out", str(out)]) == 0
     for entry in subsets.read_subset(out / "pool.json")["entries"]:
         assert entry["sha256"] == [file_sha256(entry["points"]), file_sha256(entry["labels"])]
+
+
+def test_round_trip_pool_keeps_one_point_per_pixel_with_its_true_label(study_tree, tmp_path):
+    """round-trip-pool: the pool through the domain's range image and back, labels carried; a
+    narrower image keeps fewer points; its runs train as round_trip_truth / round_trip_pseudo."""
+    root, settings = study_tree
+    kept = {}
+    for width in (512, 128):
+        out = tmp_path / f"trip{width}"
+        domains = json.dumps({"range_image": {"height": 64, "width": width}})
+        assert main(["round-trip-pool", "vehicle", "--index", str(root / "index.json"), "--pool",
+                     str(root / "pool.json"), "--settings", domains, "--out", str(out)]) == 0
+        pool = subsets.read_subset(out / "pool.json")
+        real = subsets.read_subset(root / "pool.json")
+        assert pool["num_scans"] == 3 and pool["round_trip"]["range_image"]["width"] == width
+        kept[width] = 0
+        for entry, source in zip(pool["entries"], real["entries"]):
+            points = semantickitti.read_points(entry["points"])
+            labels = semantickitti.read_label(entry["labels"])[0]
+            truth = set(semantickitti.read_label(source["labels"])[0].tolist())
+            assert len(labels) == len(points) > 0 and set(labels.tolist()) <= truth
+            kept[width] += len(points)
+    assert kept[128] < kept[512]
+    out = tmp_path / "trip512"
+    labels = tmp_path / "trip_labels"
+    assert main(["pseudo-label", "--labeler", str(root / "labeler.pt"), "--pool", str(out / "pool.json"),
+                 "--settings", json.dumps({"device": "cpu"}), "--out", str(labels)]) == 0
+    for role, flags in (("round_trip_truth", []), ("round_trip_pseudo", ["--pool-labels", str(labels)])):
+        run = tmp_path / f"{role}.pt"
+        assert main(["train-segmentor", "--backbone", "minkunet", "--subset", str(root / "subset.json"),
+                     "--settings", settings, "--work-dir", str(tmp_path / f"work_{role}"), "--out", str(run),
+                     "--pool", str(out / "pool.json"), "--pool-source", "round_trip", *flags]) == 0
+        assert torch.load(run, weights_only=True)["train"]["info"]["role"] == role
+
+
+def test_round_trip_rows_measure_each_link_from_the_ceiling_to_gda():
+    values = {"supervised_only": [0.10, 0.12, 0.11], "real_truth": [0.20, 0.21, 0.22],
+              "real_pseudo": [0.17, 0.18, 0.16], "gda": [0.09, 0.12, 0.10], "lasermix": [0.15, 0.16, 0.14],
+              "round_trip_truth": [0.19, 0.21, 0.20], "round_trip_pseudo": [0.12, 0.13, 0.14]}
+    evals = [_seeded("minkunet", role, m, s) for role, ms in values.items() for s, m in enumerate(ms)]
+    study = dc.decomposition(evals)["minkunet"]
+    assert list(study["rows"]) == [*dc.ROWS, "round_trip_truth", "round_trip_pseudo"]
+    assert study["links"]["resolution"]["per_seed"] == pytest.approx([0.01, 0.0, 0.02])
+    assert study["links"]["labels"]["per_seed"] == pytest.approx([0.07, 0.08, 0.06])
+    assert study["links"]["generator"]["per_seed"] == pytest.approx([0.03, 0.01, 0.04])
+    assert study["costliest_link"] == "labels"  # along the chain once the round-trip rows are there
+    # The three links add up to the whole gap between the ceiling and GDA, seed by seed.
+    total = np.sum([study["links"][k]["per_seed"] for k in dc.CHAIN], axis=0)
+    gap = np.asarray(values["real_truth"]) - np.asarray(values["gda"])
+    assert total == pytest.approx(gap)

@@ -206,3 +206,70 @@ def test_v_skip_output_keeps_x0_bounded_near_t1_where_direct_does_not():
 
     with pytest.raises(InputError, match="epsilon_output"):
         build_denoiser(bad, 8, 3)
+
+
+def test_azimuth_windows_wrap_and_follow_the_generator():
+    from omnilidar.generator.diffusion import azimuth_windows
+
+    g = torch.Generator().manual_seed(3)
+    cols = azimuth_windows(64, 16, 5, g)
+    assert cols.shape == (5, 16) and int(cols.min()) >= 0 and int(cols.max()) < 64
+    steps = (cols[:, 1:] - cols[:, :-1]) % 64
+    assert bool((steps == 1).all())  # consecutive columns, wrapping past the last one
+    again = azimuth_windows(64, 16, 5, torch.Generator().manual_seed(3))
+    assert torch.equal(cols, again)
+
+
+def test_window_of_a_rolled_sweep_sees_its_own_beam_angles():
+    """With the true columns passed, a rolled sweep gives the rolled output: circular padding
+    plus the window's own beam-angle features make azimuth windows real pieces of a sweep.
+    (CDFM's Mamba scan has a start column, so it is left out here.)"""
+    s = tiny_settings()
+    s["model"]["cdfm"] = False
+    torch.manual_seed(0)
+    net = build_denoiser(s, text_dim=12, num_domains=3).eval()
+    for p in net.parameters():
+        p.data.add_(0.05 * torch.randn_like(p))
+    dom, tok, mask = _cond()
+    x = torch.randn(2, 2, 16, 64)
+    shift = 24
+    columns = ((torch.arange(64) + shift) % 64).expand(2, -1)
+    with torch.no_grad():
+        full = net(x, torch.zeros(2), dom, tok, mask)
+        same = net(x, torch.zeros(2), dom, tok, mask, columns=torch.arange(64).expand(2, -1))
+        rolled = net(torch.roll(x, -shift, dims=3), torch.zeros(2), dom, tok, mask, columns=columns)
+        wrong = net(torch.roll(x, -shift, dims=3), torch.zeros(2), dom, tok, mask)
+    torch.testing.assert_close(same, full)
+    torch.testing.assert_close(rolled, torch.roll(full, -shift, dims=3), atol=1e-5, rtol=1e-4)
+    assert not torch.allclose(wrong, torch.roll(full, -shift, dims=3), atol=1e-3)  # angles matter
+
+
+def test_crop_width_trains_on_windows_and_full_width_changes_nothing(tiny_unet):
+    from omnilidar.generator.diffusion import epsilon_loss
+    from omnilidar.generator.schedule import CosineLogSNRSchedule
+
+    dom, tok, mask = _cond()
+    image = torch.rand(2, 2, 16, 64) * 2 - 1
+    sched = CosineLogSNRSchedule()
+
+    def loss(crop):
+        return epsilon_loss(tiny_unet, image, dom, tok, mask, sched, 5.0, torch.Generator().manual_seed(1), crop)
+
+    with torch.no_grad():
+        assert torch.equal(loss(None), loss(64)) and torch.equal(loss(None), loss(128))
+        windowed = loss(32)
+    assert torch.isfinite(windowed) and not torch.equal(windowed, loss(None))
+
+
+def test_crop_width_must_survive_the_downsampling():
+    from omnilidar.errors import InputError
+    from omnilidar.generator.training import check_crop_width
+
+    s = tiny_settings(crop_width=30)  # two levels: divisible by 2 needed
+    s["model"]["channel_multipliers"] = [1, 2, 4]
+    with pytest.raises(InputError, match="crop_width 30: must be divisible by 4"):
+        check_crop_width(s)
+    s["training"]["crop_width"] = 32
+    check_crop_width(s)
+    s["training"]["crop_width"] = 1000  # wider than the image: full images
+    check_crop_width(s)

@@ -190,3 +190,20 @@ def test_raising_iterations_resumes_from_a_moved_work_dir(trained, capsys):
     assert f"resuming at iteration 3 from iter_3.pth in {moved}" in log
     assert str(hidden) not in log and str(root / "work") + "/" not in log
     assert sorted(p.name for p in moved.glob("iter_*.pth"))[-1] == "iter_4.pth"
+
+
+def test_training_on_azimuth_windows_gives_a_full_sweep_generator(tmp_path):
+    """crop_width trains on windows, and the checkpoint still denoises the whole image."""
+    from omnilidar.generator.diffusion import generate
+
+    settings = tiny_settings(crop_width=16)
+    index = make_domains(tmp_path, settings)
+    prompts = tmp_path / "prompts.pt"
+    torch.save(build_prompt_cache(settings["prompts"], FakeEncoder()), prompts)
+    full = train_generator(tiny_settings(), index, prompts, tmp_path / "w_full", tmp_path / "full.pt", seed=3)
+    windowed = train_generator(settings, index, prompts, tmp_path / "w_crop", tmp_path / "crop.pt", seed=3)
+    assert windowed["weights_digest"] != full["weights_digest"]  # the windows changed what it learned
+    denoiser, _ = load_generator(tmp_path / "crop.pt")
+    vehicle = torch.load(prompts, weights_only=True)["domains"]["Vehicle"]
+    images = generate(denoiser, 0, vehicle["tokens"][0], vehicle["mask"][0], [0, 1], (16, 64), steps=2)
+    assert images.shape == (2, 2, 16, 64) and torch.isfinite(images).all()

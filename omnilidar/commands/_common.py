@@ -34,3 +34,13 @@ def data_source_arg(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--data-source", type=parse, required=True,
                         help='{dataset: {"root": path, "kind": "real" | "synthetic"}} (Snakemake passes it)')
+
+
+def pool_transform_args(parser: argparse.ArgumentParser, domain_help: str) -> None:
+    """DOMAIN, --index, --pool, --settings and --out of a command that transforms a pool of real
+    labelled scans (simulate-pool, round-trip-pool)."""
+    parser.add_argument("domain", help=domain_help)
+    parser.add_argument("--index", required=True, help="dataset index JSON the pool's scans come from")
+    parser.add_argument("--pool", required=True, help="pool of real scans (make-subset --exclude)")
+    settings_arg(parser)
+    parser.add_argument("--out", required=True, help="folder to write (atomically): velodyne/, labels/, pool.json")

@@ -25,7 +25,8 @@ def run(args) -> int:
     import json
 
     from omnilidar.config import validate
-    from omnilidar.downstream.seg.experiments import labeler_quality, read_evaluation
+    from omnilidar.downstream.seg.experiments import (labeler_against_students, labeler_quality, read_evaluation,
+                                                     warn_about_labeler)
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
     from omnilidar.provenance import envelope
@@ -60,6 +61,10 @@ def run(args) -> int:
         count = gc.generated_count(ev)
         timings[f"train_{count}"] = ev["train"]["seconds"]
         timings[f"evaluate_{count}"] = ev["seconds"]
+    labeler = {}
+    if args.labeler_evaluation:
+        labeler["labeler"] = labeler_quality(read_evaluation(args.labeler_evaluation))
+        labeler["labeler_check"] = labeler_against_students(labeler["labeler"], evals)
     doc = envelope(
         "gda_curve", "gda-curve", args.settings, {"seed": args.seed}, timings, args.data_source,
         setup=setup, requested_generated_scans=sorted(requested["generated_scans"]),
@@ -67,7 +72,7 @@ def run(args) -> int:
             "sampling-loop seconds / generated scans, from each sample shard's timing.json"),
         total_note=gc.TOTAL_NOTE, miou_convention="miou: semantic-kitti-api (absent classes count as 0)",
         rows=rows, real_series=series,
-        **({"labeler": labeler_quality(read_evaluation(args.labeler_evaluation))} if args.labeler_evaluation else {}),
+        **labeler,
     )
     write_text_atomic(args.out, json.dumps(doc, indent=1))
     gc.curve_figure(args.figure, doc)
@@ -77,5 +82,7 @@ def run(args) -> int:
         print(f"{r['generated_scans']:>6} generated: mIoU {100 * r['miou']:.2f}, {r['total_seconds']:.1f} s "
               f"(train {r['train_seconds']:.1f}, sampling {r['sampling_seconds']:.1f}, "
               f"pseudo-labels {r['pseudo_label_seconds']:.1f})")
+    if labeler:
+        warn_about_labeler(labeler["labeler_check"])
     print(f"result: {args.out}  figure: {args.figure}")
     return 0

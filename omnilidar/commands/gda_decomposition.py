@@ -31,7 +31,8 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.dicts import deep_merge
-    from omnilidar.downstream.seg.experiments import labeler_quality, read_evaluation
+    from omnilidar.downstream.seg.experiments import (labeler_against_students, labeler_quality, read_evaluation,
+                                                     warn_about_labeler)
     from omnilidar.downstream.seg.pseudo_label import SIDECAR
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
@@ -71,10 +72,13 @@ def run(args) -> int:
                for e in evals}
     experiment = "gda_decomposition" if args.evalset == "val" else f"gda_decomposition_{args.domain}"
     rows = list(next(iter(studies.values()))["rows"]) if studies else []
+    labeler = labeler_quality(read_evaluation(args.labeler_evaluation))
+    labeler_check = labeler_against_students(labeler, evals) if args.evalset == "val" else {
+        "compared": False, "warning": None, "note": "the labeler is scored on val, this study on " + args.evalset}
     doc = envelope(
         experiment, "gda-decomposition", args.settings, {"seed": args.seed}, timings, args.data_source,
         setup=setup, rows=rows, links=dc.LINKS, attempts=requested["attempts"], backbones=studies,
-        labeler=labeler_quality(read_evaluation(args.labeler_evaluation)),
+        labeler=labeler, labeler_check=labeler_check,
         pool_pseudo_labels_against_truth=pool.get("accuracy_against_truth"),
         miou_convention="miou: semantic-kitti-api (absent classes count as 0)",
     )
@@ -95,6 +99,12 @@ def run(args) -> int:
         scored = study["ceiling_on_evalset"]
         print(f"  on {study['evalset']} (reported only): ceiling gain {100 * scored['ceiling_gain']['mean']:.2f} "
               f"vs 2 std {100 * scored['two_std']:.2f}: {'clears' if scored['ceiling_clears_two_std'] else 'does not clear'}")
+        for name in dc.CHAIN:
+            if name in study["links"]:
+                link = study["links"][name]
+                std = f" +- {100 * link['std']:.2f}" if link["std"] is not None else ""
+                print(f"  link {name:<11} costs {100 * link['mean']:.2f}{std} mIoU points ({' - '.join(dc.LINKS[name])})")
         print(f"  costliest link: {study['costliest_link']}")
+    warn_about_labeler(labeler_check)
     print(f"result: {args.out}  figure: {args.figure}")
     return 0

@@ -54,6 +54,7 @@ def run(args) -> int:
     })
     if args.labeler_evaluation:
         numbers["labeler"] = ex.labeler_quality(ex.read_evaluation(args.labeler_evaluation))
+        numbers["labeler_check"] = ex.labeler_against_students(numbers["labeler"], evals)
     if args.kind == "semanticstf":
         numbers["synthetic_weather_standin"] = bool(args.standin)
         if args.standin:
@@ -73,5 +74,6 @@ def run(args) -> int:
                   f"-> GDA {100 * gda['miou_mean']:.2f}{spread(gda)} mIoU ({run['seeds']} seed(s))")
     if "labeler" in numbers:
         print(f"labeler (writes every pseudo-label): val mIoU {100 * numbers['labeler']['val_miou']:.2f}")
+        ex.warn_about_labeler(numbers["labeler_check"])
     print(f"result: {args.out}  figure: {args.figure}")
     return 0

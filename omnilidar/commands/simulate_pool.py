@@ -2,19 +2,15 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import pool_transform_args, seed_arg
 
 HELP = "run a pool of real labelled scans through a domain's scene (the domain builder), labels carried"
 DATA_FILES = ("workflow/schemas/domains.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("domain", help="domain key of the domains section (fog, snow, ...)")
-    parser.add_argument("--index", required=True, help="dataset index JSON the pool's scans come from")
-    parser.add_argument("--pool", required=True, help="pool of real scans (make-subset --exclude)")
-    settings_arg(parser)
+    pool_transform_args(parser, "domain key of the domains section (fog, snow, ...)")
     seed_arg(parser)
-    parser.add_argument("--out", required=True, help="folder to write (atomically): velodyne/, labels/, pool.json")
 
 
 def run(args) -> int:

@@ -24,8 +24,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--pool-labels", help="the labeler's labels of the pool (pseudo-label --pool)")
     parser.add_argument("--max-pool", type=int, default=None, metavar="N",
                         help="use only the first N scans of the pool (default all)")
-    parser.add_argument("--pool-source", choices=["real", "simulated"], default="real",
-                        help="simulated: the pool is real scans run through a domain's scene (simulate-pool)")
+    parser.add_argument("--pool-source", choices=["real", "simulated", "round_trip"], default="real",
+                        help="simulated: the pool is real scans run through a domain's scene (simulate-pool); "
+                             "round_trip: through a domain's range image and back (round-trip-pool), with their "
+                             "carried labels or with --pool-labels")
     parser.add_argument("--lasermix", action="store_true",
                         help="LaserMix each pool scan (with --pool-labels) with a real labelled scan")
     parser.add_argument("--work-dir", default="work/segmentation", help="resumable training state (undeclared)")
@@ -69,6 +71,10 @@ def run(args) -> int:
             if args.pool_labels or args.lasermix:
                 raise InputError(args.pool, "a simulated pool trains on its carried labels (no --pool-labels, --lasermix)")
             role = "simulated"
+        if args.pool_source == "round_trip":
+            if args.lasermix:
+                raise InputError(args.pool, "a round-trip pool is not LaserMix-ed")
+            role = "round_trip_pseudo" if args.pool_labels else "round_trip_truth"
     else:
         generated, empty = generated_records(args.samples, args.pseudo_labels, limit=args.max_generated)
         if args.samples and not generated:

@@ -32,7 +32,7 @@ with intensity ``i`` in [0, 1] (the sensor's intensity divided by its
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -344,3 +344,18 @@ def from_range_image(
     if ring_from_row:
         ring = np.nonzero(mask)[0].astype(np.int16)
     return Scan(points=points, ring=ring, intensity_scale=float(intensity_scale))
+
+
+def round_trip(scan: Scan, spec: RangeImageSpec) -> Scan:
+    """A scan as the generator would emit it if it were perfect: projected into ``spec``'s
+    range image (nearest return per pixel), encoded and decoded as the network's input and
+    output are, and back-projected; each kept point carries the labels (semantic, instance)
+    of its pixel's winning point and that beam's row as its ring. Only the image's size and
+    quantisation are lost: what a sensor of ``spec``'s resolution would have seen."""
+    proj = project(scan.points, spec, intensity_scale=scan.intensity_scale)
+    image = encode(proj.range_img, proj.intensity_img, spec)
+    range_img, intensity_img, mask = decode(image, spec)
+    mask &= proj.point_index_img >= 0  # decoding never invents a return, but never trust it to
+    points = unproject(range_img, intensity_img, spec, mask=mask, intensity_scale=scan.intensity_scale)
+    winners = proj.point_index_img[mask]  # row-major, as unproject orders its points
+    return replace(scan.select(winners), points=points, ring=np.nonzero(mask)[0].astype(np.int16))

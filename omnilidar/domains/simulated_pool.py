@@ -1,5 +1,9 @@
-"""Simulated augmentation, the natural baseline for a generator: a pool of real labelled scans
-(``make-subset --exclude``) run through a domain's scene by the domain builder, labels carried."""
+"""Pools of real labelled scans (``make-subset --exclude``) transformed with their labels carried:
+
+- simulated: run through a domain's scene by the domain builder, the natural baseline for a generator;
+- round trip: through the domain's range image and back, what a perfect generator of that image
+  size would give (the decomposition's resolution link).
+"""
 
 from __future__ import annotations
 
@@ -24,6 +28,41 @@ def simulate_pool(domain: DomainSpec, index_path: str | Path, pool_path: str | P
     WEATHER_RETURN_LABEL, ignored in training), written atomically as ``out/velodyne``,
     ``out/labels`` and ``out/pool.json``, a pool of the simulated scans that train-segmentor
     reads like the real one. Returns that pool document."""
+    sensor = domain.sensor
+
+    def simulate(scan, k, source):
+        built, record = build_scan(scan, domain.scene, sensor,
+                                   scan_rng(seed, SIMULATED_POOL_STREAM, domain.id, k), source)
+        return built, {"seed": [seed, SIMULATED_POOL_STREAM, domain.id, k], **record}
+
+    return _transformed_pool(domain, index_path, pool_path, out, simulate, "simulated",
+                             {"domain": domain.name, "seed": seed}, progress)
+
+
+def round_trip_pool(domain: DomainSpec, settings: dict, index_path: str | Path, pool_path: str | Path,
+                    out: str | Path, progress: bool = True) -> dict:
+    """A pool of real labelled scans through the domain's range image and back
+    (:func:`omnilidar.data.range_image.round_trip`): what a perfect generator of this image
+    size would give, each point with its true label. Written like :func:`simulate_pool`."""
+    from dataclasses import asdict
+
+    from omnilidar.data.range_image import round_trip
+    from omnilidar.domains.builder import range_image_spec
+
+    spec = range_image_spec(domain, settings)
+
+    def trip(scan, k, source):
+        return round_trip(scan, spec), {}
+
+    return _transformed_pool(domain, index_path, pool_path, out, trip, "round_trip",
+                             {"domain": domain.name, "range_image": asdict(spec)}, progress)
+
+
+def _transformed_pool(domain: DomainSpec, index_path, pool_path, out, transform, kind: str, about: dict,
+                      progress: bool) -> dict:
+    """Each pool scan through ``transform(scan, k, source) -> (scan, record)``, labels carried, written
+    atomically as ``out/velodyne``, ``out/labels``, ``out/pool.json`` (the pool document, with
+    ``kind`` describing how it was made) and ``out/sidecar.json``."""
     from tqdm import tqdm
 
     from omnilidar.downstream.seg.subsets import read_subset, write_subset
@@ -40,27 +79,26 @@ def simulate_pool(domain: DomainSpec, index_path: str | Path, pool_path: str | P
     with atomic_path(out) as tmp:
         (tmp / "velodyne").mkdir(parents=True)
         (tmp / "labels").mkdir()
-        for k, entry in enumerate(tqdm(pool["entries"], desc=f"{domain.name} pool", file=sys.stderr,
+        for k, entry in enumerate(tqdm(pool["entries"], desc=f"{domain.name} pool ({kind})", file=sys.stderr,
                                        disable=not progress, mininterval=2.0)):
             if not entry.get("labels"):
                 raise InputError(entry["points"], "pool scan has no label file to carry")
             scan = read_entry(index, entry, sensor)
-            built, record = build_scan(scan, domain.scene, sensor,
-                                       scan_rng(seed, SIMULATED_POOL_STREAM, domain.id, k), entry["points"])
+            built, record = transform(scan, k, entry["points"])
             name = f"{k:06d}"
             write_points_kitti(tmp / "velodyne" / f"{name}.bin", built)
             semantickitti.write_label(tmp / "labels" / f"{name}.label", built.semantic, built.instance)
             # The files' digests make pool.json's own digest (what trainers key their resumable
-            # state by) change whenever a simulated scan does, e.g. after an effect's code changed.
+            # state by) change whenever a transformed scan does, e.g. after an effect's code changed.
             entries.append({"points": str(out / "velodyne" / f"{name}.bin"),
                             "labels": str(out / "labels" / f"{name}.label"), "source": entry["points"],
                             "sha256": [file_sha256(tmp / "velodyne" / f"{name}.bin"),
                                        file_sha256(tmp / "labels" / f"{name}.label")]})
             records.append({"name": name, "source": entry["points"], "num_points_in": len(scan),
-                            "num_points_out": len(built), "seed": [seed, SIMULATED_POOL_STREAM, domain.id, k],
-                            **record})
-        doc = {**pool, "entries": entries, "simulated": {"domain": domain.name, "from_pool": str(pool_path),
-                                                         "pool_digest": digest(pool_path), "seed": seed}}
+                            "num_points_out": len(built), **record})
+        doc = {**pool, "entries": entries, kind: {**about, "from_pool": str(pool_path),
+                                                  "pool_digest": digest(pool_path)}}
         write_subset(doc, tmp / "pool.json")
-        (tmp / "sidecar.json").write_text(json.dumps({"domain": domain.name, "scans": _jsonable(records)}, indent=1))
+        (tmp / "sidecar.json").write_text(json.dumps({"domain": domain.name, kind: about, "scans": _jsonable(records)},
+                                                     indent=1))
     return doc

@@ -26,15 +26,34 @@ def noised(image: torch.Tensor, t: torch.Tensor, eps: torch.Tensor, schedule: Co
     return alpha[:, None, None, None] * image.float() + sigma[:, None, None, None] * eps, logsnr
 
 
+def azimuth_windows(width: int, crop_width: int, batch: int, generator: torch.Generator,
+                    device: torch.device | str = "cpu") -> torch.Tensor:
+    """(batch, crop_width) column indices of one window per scan: ``crop_width``
+    consecutive columns from a random start, wrapping around (a sweep is periodic in
+    azimuth, so every window is a real piece of a scan)."""
+    start = torch.randint(width, (batch,), generator=generator, device=device)
+    return (start[:, None] + torch.arange(crop_width, device=device)[None, :]) % width
+
+
 def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor, tokens: torch.Tensor,
                  mask: torch.Tensor, schedule: CosineLogSNRSchedule, gamma: float,
-                 generator: torch.Generator) -> torch.Tensor:
-    """Min-SNR-gamma weighted epsilon MSE of one batch at t ~ U(0, 1); t and epsilon come from ``generator``."""
+                 generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
+    """Min-SNR-gamma weighted epsilon MSE of one batch at t ~ U(0, 1); t and epsilon come from ``generator``.
+
+    With ``crop_width`` each scan is trained on one azimuth window of that many columns
+    (start drawn from ``generator`` first); the denoiser sees the window's true beam
+    angles, so the same weights sample full sweeps.
+    """
     b = image.shape[0]
+    columns = None
+    if crop_width is not None and crop_width < image.shape[-1]:
+        columns = azimuth_windows(image.shape[-1], crop_width, b, generator, image.device)
+        image = torch.gather(image, 3, columns[:, None, None, :].expand(-1, image.shape[1], image.shape[2], -1))
     t = torch.rand(b, generator=generator, device=image.device, dtype=torch.float32)
     eps = torch.randn(image.shape, generator=generator, device=image.device, dtype=torch.float32)
     x_t, logsnr = noised(image, t, eps, schedule)
-    pred = denoiser(x_t, logsnr, domain, tokens, mask)
+    pred = denoiser(x_t, logsnr, domain, tokens, mask) if columns is None else \
+        denoiser(x_t, logsnr, domain, tokens, mask, columns=columns)
     per_scan = (pred.float() - eps).square().mean(dim=(1, 2, 3))
     return (min_snr_weight(logsnr, gamma) * per_scan).mean()
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from pathlib import Path
 
 import torch
@@ -73,6 +74,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             d = settings["diffusion"]
             self.schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
             self.gamma = float(d["min_snr_gamma"])
+            self.crop_width = settings["training"].get("crop_width")
             self.register_buffer("prompt_tokens", prompt_tokens.float(), persistent=False)
             self.register_buffer("prompt_mask", prompt_mask.bool(), persistent=False)
             self.seed = int(seed)
@@ -84,7 +86,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             gen = torch.Generator(device=image.device)
             gen.manual_seed(int(rng_for(self.seed, get_rank(), self.iteration).integers(2**63 - 1)))
             loss = epsilon_loss(self.denoiser, image, domain, self.prompt_tokens[prompt], self.prompt_mask[prompt],
-                                self.schedule, self.gamma, gen)
+                                self.schedule, self.gamma, gen, crop_width=self.crop_width)
             return {"loss": loss}
 
     return DiffusionModel()
@@ -175,6 +177,18 @@ def agreed_resume_point(run_dir: Path, provenance: dict, iterations: int, world:
     return Path(decision[0]) if decision[0] else None
 
 
+def check_crop_width(settings: dict) -> None:
+    """training.crop_width must survive the UNet's downsampling (a crop as wide as the
+    image or wider trains on full images)."""
+    from omnilidar.errors import InputError
+
+    crop, width = settings["training"].get("crop_width"), settings["range_image"]["width"]
+    down = 2 ** (len(settings["model"]["channel_multipliers"]) - 1)
+    if crop is not None and crop < width and crop % down:
+        raise InputError(None, f"generator.training.crop_width {crop}: must be divisible by {down} "
+                               f"(the UNet halves the width {down.bit_length() - 1} times)")
+
+
 def train_generator(
     settings: dict,
     domains_index: str | Path,
@@ -196,6 +210,7 @@ def train_generator(
 
     tr = settings["training"]
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
+    check_crop_width(settings)
     domains = read_domains_index(domains_index)
     names = list(domains)
     cache = load_prompt_cache(prompts_path)
@@ -263,7 +278,10 @@ def train_generator(
         f"{len(dataset)} scans, strategy {tr['strategy']}, {tr['iterations']} iterations"
         + (f", resuming at iteration {skip} from {resume_from.name}" if resume_from else ", from scratch")
     )
+    # What this run's training cost (a resumed run counts only its own part), for the budget study.
+    wall0, cpu0 = time.perf_counter(), time.process_time()
     runner.train()
+    cost = {"train_seconds": round(time.perf_counter() - wall0, 2), "train_cpu_seconds": round(time.process_time() - cpu0, 2)}
     if is_main_process():
         relative_marker(run_dir)
 
@@ -276,6 +294,7 @@ def train_generator(
         "parameters": count_parameters(denoiser),
         "work_dir": str(run_dir),
         "resumed_from": skip,
+        **cost,
     }
     if is_main_process():
         payload = {

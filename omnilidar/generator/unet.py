@@ -259,7 +259,10 @@ class EfficientUNet(nn.Module):
         domain: torch.Tensor,
         tokens: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
+        columns: torch.Tensor | None = None,
     ) -> torch.Tensor:
+        """``columns`` (B, W') selects, per scan, the image columns ``x`` holds (an azimuth
+        window in training); None = ``x`` is the full sweep."""
         b = x.shape[0]
         if self.cfg.cross_attention and (tokens is None or mask is None):
             raise ValueError("this denoiser is text-conditioned: pass prompt tokens and mask")
@@ -268,7 +271,11 @@ class EfficientUNet(nn.Module):
             m = mask.to(tokens.dtype)[..., None]
             pooled = (tokens * m).sum(1) / m.sum(1).clamp_min(1.0)
             emb = emb + self.text_pool(pooled)
-        h = self.stem(torch.cat([x, self.coords.to(x.dtype).expand(b, -1, -1, -1)], dim=1))
+        if columns is None:
+            coords = self.coords.to(x.dtype).expand(b, -1, -1, -1)
+        else:  # (C, H, B, W') -> (B, C, H, W')
+            coords = self.coords.to(x.dtype)[:, :, columns].permute(2, 0, 1, 3)
+        h = self.stem(torch.cat([x, coords], dim=1))
         skips = []
         for down, level in zip(self.down, self.enc):
             h = level(down(h), emb, tokens, mask, domain)

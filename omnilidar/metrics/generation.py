@@ -126,14 +126,20 @@ def real_domain_images(domains_index, domain: str, shape: tuple[int, int], limit
 def dataset_images(index_path, split: str, spec: RangeImageSpec, limit: int) -> np.ndarray:
     """Up to ``limit`` scans of a dataset split (index JSON), projected to range images."""
     from omnilidar.data.index import read_index
-    from omnilidar.data.range_image import encode, project
-    from omnilidar.io.semantickitti import read_points
 
     entries = read_index(index_path)["splits"].get(split) or []
     if not entries:
         raise InputError(index_path, f"split {split!r} has no scans")
+    return entry_images(entries[: max(1, int(limit))], spec)
+
+
+def entry_images(entries: list[dict], spec: RangeImageSpec) -> np.ndarray:
+    """The scans of index or subset entries ({"points": .bin path}), projected to range images."""
+    from omnilidar.data.range_image import encode, project
+    from omnilidar.io.semantickitti import read_points
+
     out = []
-    for entry in entries[: max(1, int(limit))]:
+    for entry in entries:
         proj = project(read_points(entry["points"]), spec)
         out.append(encode(proj.range_img, proj.intensity_img, spec))
     return np.stack(out)

@@ -9,6 +9,9 @@ the same schedule and seeds; only what is added differs (N scans each):
     generated         N generated scans of the domain labelled by the labeler (the method)
     lasermix          the same N real scans LaserMix-ed with the labelled ones, labeler's labels
     simulated         (weather study) the N real scans through the domain's scene, labels carried
+    round_trip_truth  the N real scans through the generator's range image and back, true labels
+                      carried (a perfect generator at this image size)
+    round_trip_pseudo the same round-tripped scans labelled by the labeler
 
 Differences between rows are taken seed by seed (rows share their seeds), so
 the spread of a difference is not the sum of two rows' spreads. What each link
@@ -18,6 +21,12 @@ costs:
     samples           real_pseudo - generated    (generated instead of real scans, same labeler)
     vs_lasermix       lasermix - generated       (the semi-supervised alternative on the same labeler)
     vs_simulation     simulated - generated      (physical simulation against the generator's scans)
+
+and, with the round-trip rows, the chain from the ceiling to GDA one link at a time:
+
+    resolution        real_truth - round_trip_truth         (what the image size loses)
+    labels            round_trip_truth - round_trip_pseudo  (the labeler, on scans of that size)
+    generator         round_trip_pseudo - generated         (the generator against a perfect one)
 """
 
 from __future__ import annotations
@@ -32,18 +41,25 @@ from omnilidar.errors import InputError
 ROWS = ("supervised_only", "real_truth", "real_pseudo", "generated", "lasermix")
 HELDOUT = "heldout"  # train-split scans outside the subset and the pool: where the regime is checked
 SIMULATED = "simulated"  # the weather study's extra row: the pool through the domain builder, labels carried
+ROUND_TRIP = ("round_trip_truth", "round_trip_pseudo")  # the pool through the generator's image and back
+OPTIONAL_ROWS = (SIMULATED, *ROUND_TRIP)  # present when their runs are given
 ROLE_OF_ROW = {"supervised_only": "supervised_only", "real_truth": "real_truth", "real_pseudo": "real_pseudo",
-               "generated": "gda", "lasermix": "lasermix", SIMULATED: "simulated"}
+               "generated": "gda", "lasermix": "lasermix", SIMULATED: "simulated",
+               "round_trip_truth": "round_trip_truth", "round_trip_pseudo": "round_trip_pseudo"}
 ROW_LABELS = {"supervised_only": "supervised only", "real_truth": "+N real, true labels",
               "real_pseudo": "+N real, labeler's labels", "generated": "+N generated (GDA)",
-              "lasermix": "+N real, LaserMix", SIMULATED: "+N real, simulated domain"}
+              "lasermix": "+N real, LaserMix", SIMULATED: "+N real, simulated domain",
+              "round_trip_truth": "+N real via range image, true", "round_trip_pseudo": "+N real via range image, labeler"}
 LINKS = {"pseudo_labels": ("real_truth", "real_pseudo"), "samples": ("real_pseudo", "generated"),
-         "vs_lasermix": ("lasermix", "generated"), "vs_simulation": (SIMULATED, "generated")}
+         "vs_lasermix": ("lasermix", "generated"), "vs_simulation": (SIMULATED, "generated"),
+         "resolution": ("real_truth", "round_trip_truth"), "labels": ("round_trip_truth", "round_trip_pseudo"),
+         "generator": ("round_trip_pseudo", "generated")}
+CHAIN = ("resolution", "labels", "generator")  # ceiling -> GDA, one link at a time (round-trip rows)
 
 
 def study_rows(roles) -> tuple[str, ...]:
-    """The rows a study has: the five, plus the simulated row when its runs are given."""
-    return ROWS + ((SIMULATED,) if ROLE_OF_ROW[SIMULATED] in roles else ())
+    """The rows a study has: the five, plus the simulated and round-trip rows when their runs are given."""
+    return ROWS + tuple(row for row in OPTIONAL_ROWS if ROLE_OF_ROW[row] in roles)
 
 
 def pooled_set(doc: dict, prefix: str) -> dict:
@@ -57,7 +73,7 @@ def pooled_set(doc: dict, prefix: str) -> dict:
             "sets": sorted(k for k in doc["sets"] if k.startswith(prefix + "/"))}
 
 
-def _paired(a: list[float], b: list[float]) -> dict:
+def paired_difference(a: list[float], b: list[float]) -> dict:
     """Mean and sample standard deviation of the per-seed differences a - b."""
     diff = np.asarray(a) - np.asarray(b)
     return {"per_seed": diff.tolist(), "mean": float(diff.mean()),
@@ -85,14 +101,14 @@ def backbone_study(roles: dict[str, list[dict]], backbone: str, evalset: str = "
                      "checkpoints": [d["checkpoint"] for d in docs]}
     base = rows["supervised_only"]["miou"]
     for row in names[1:]:
-        rows[row]["gain_over_supervised"] = _paired(rows[row]["miou"], base)
+        rows[row]["gain_over_supervised"] = paired_difference(rows[row]["miou"], base)
     ceiling = rows["real_truth"]["gain_over_supervised"]["mean"]
     generated = rows["generated"]["gain_over_supervised"]["mean"]
     check = regime_check(roles)
     return {
         "seeds": seeds, "rows": rows,
         "evalset": evalset,
-        "links": {name: _paired(rows[a]["miou"], rows[b]["miou"]) for name, (a, b) in LINKS.items()
+        "links": {name: paired_difference(rows[a]["miou"], rows[b]["miou"]) for name, (a, b) in LINKS.items()
                   if a in rows and b in rows},
         "regime_check": check,
         "ceiling_clears_two_std": check["ceiling_clears_two_std"],
@@ -118,15 +134,17 @@ def regime_check(roles: dict[str, list[dict]]) -> dict:
 def ceiling_test(supervised: dict, ceiling: dict) -> dict:
     """Does the ceiling clear supervised-only by two standard deviations (the larger row's, over
     seeds)? The gain is taken seed by seed; one seed never clears."""
-    gain = _paired(ceiling["miou"], supervised["miou"])
+    gain = paired_difference(ceiling["miou"], supervised["miou"])
     spread = max(supervised["miou_std"] or 0.0, ceiling["miou_std"] or 0.0)
     return {"ceiling_gain": gain, "two_std": 2 * spread,
             "ceiling_clears_two_std": bool(len(gain["per_seed"]) > 1 and gain["mean"] > 2 * spread)}
 
 
 def costliest_link(study: dict) -> str | None:
-    """The link (pseudo_labels or samples) that loses the most mIoU, or None when neither loses."""
-    costs = {k: study["links"][k]["mean"] for k in ("pseudo_labels", "samples")}
+    """The link that loses the most mIoU, or None when none loses: along the chain (resolution,
+    labels, generator) when the round-trip rows were run, else pseudo_labels or samples."""
+    chain = CHAIN if all(k in study["links"] for k in CHAIN) else ("pseudo_labels", "samples")
+    costs = {k: study["links"][k]["mean"] for k in chain}
     name = max(costs, key=costs.get)
     return name if costs[name] > 0 else None
 
@@ -139,8 +157,8 @@ def attempt_record(study: dict, docs: list[dict], name: str, backbone: str) -> d
         raise InputError(docs[0]["_path"], f"{backbone} attempt {name}: seeds {stats['seeds']} differ from "
                                            f"{study['seeds']}")
     return {**stats, "mixing": docs[0]["train"].get("mixing"), "iterations": docs[0]["train"]["iterations"],
-            "gain_over_generated": _paired(stats["miou"], study["rows"]["generated"]["miou"]),
-            "gain_over_supervised": _paired(stats["miou"], study["rows"]["supervised_only"]["miou"])}
+            "gain_over_generated": paired_difference(stats["miou"], study["rows"]["generated"]["miou"]),
+            "gain_over_supervised": paired_difference(stats["miou"], study["rows"]["supervised_only"]["miou"])}
 
 
 def decomposition(evaluations: list[dict], attempts: dict[str, list[dict]] | None = None,
@@ -175,9 +193,13 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
     from omnilidar.io.atomic import atomic_path
 
     studies = doc["backbones"]
-    fig, axes = plt.subplots(1, len(studies), figsize=(max(5.6 * len(studies), 6.4), 4.4), squeeze=False)
+    chained = all(all(k in st["links"] for k in CHAIN) for st in studies.values())
+    fig, axes = plt.subplots(2 if chained else 1, len(studies), figsize=(max(5.6 * len(studies), 6.4),
+                                                                         7.4 if chained else 4.4),
+                             squeeze=False, gridspec_kw={"height_ratios": [2.2, 1]} if chained else None)
     colors = {"supervised_only": "#7f7f7f", "real_truth": "#2ca02c", "real_pseudo": "#98df8a", "generated": "#1f77b4",
-              "lasermix": "#ff7f0e", SIMULATED: "#9467bd"}
+              "lasermix": "#ff7f0e", SIMULATED: "#9467bd", "round_trip_truth": "#17becf",
+              "round_trip_pseudo": "#9edae5"}
     for ax, (backbone, study) in zip(axes[0], studies.items()):
         bars = [(ROW_LABELS[r], study["rows"][r], colors[r]) for r in study["rows"]]
         bars += [(f"GDA, {name}", rec, "#aec7e8") for name, rec in study.get("attempts", {}).items()]
@@ -194,6 +216,19 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
         n = len(study["seeds"])
         ax.set_title(f"{backbone} ({'mean +- std over ' + str(n) + ' seeds' if n > 1 else 'one seed'})", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
+    if chained:  # the chain from the ceiling to GDA: what each link costs, seed by seed
+        for ax, (backbone, study) in zip(axes[1], studies.items()):
+            links = [study["links"][k] for k in CHAIN]
+            y = np.arange(len(CHAIN))
+            ax.barh(y, [100 * ln["mean"] for ln in links], 0.5,
+                    xerr=[100 * (ln["std"] or 0.0) for ln in links], capsize=4, color="#c5b0d5")
+            for i, ln in enumerate(links):
+                ax.plot([100 * v for v in ln["per_seed"]], np.full(len(ln["per_seed"]), y[i]), "k.", ms=4)
+            ax.set_yticks(y, [f"{k}\n({LINKS[k][0]} - {LINKS[k][1]})" for k in CHAIN], fontsize=6)
+            ax.axvline(0, color="k", lw=0.8)
+            ax.invert_yaxis()
+            ax.set_xlabel("mIoU points lost along the link (seed-paired)", fontsize=8)
+            ax.grid(axis="x", alpha=0.3)
     setup = doc["setup"]
     fig.suptitle(f"GDA decomposition: {setup['percent']:g} % labels + N = {setup['scans']} scans\n"
                  f"({setup['domain']} samples for GDA, scored on {setup['evalset']})", fontsize=10)

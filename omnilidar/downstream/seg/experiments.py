@@ -9,6 +9,7 @@ the paper reports (REFERENCE section 9) and, for the corrupted sets, mCE / mRR.
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +56,33 @@ def labeler_quality(evaluation: dict) -> dict:
         "val_iou": val["iou"], "val_scans": val["num_scans"],
         "label_space": evaluation["label_space"], "evaluation": evaluation["_path"],
     }
+
+
+def labeler_against_students(labeler: dict, evals: list[dict]) -> dict:
+    """Is the fixed labeler stronger than every supervised-only student it labels for? Per backbone,
+    its val mIoU against the students' (mean over their seeds), where both score the same label
+    space; a ``warning`` sentence when it is not (its pseudo-labels then cannot teach the student)."""
+    students: dict[str, list[float]] = {}
+    for ev in evals:
+        if ev["train"]["info"]["role"] == "supervised_only" and "val" in ev["sets"]:
+            if ev["label_space"] == labeler["label_space"]:
+                students.setdefault(ev["model"]["backbone"], []).append(ev["sets"]["val"]["miou"])
+    if not students:
+        return {"compared": False, "warning": None,
+                "note": f"no supervised-only student scored on val in the labeler's label space ({labeler['label_space']})"}
+    per = {b: {"student_val_miou": float(np.mean(m)), "student_seeds": len(m), "labeler_val_miou": labeler["val_miou"],
+               "labeler_stronger": bool(labeler["val_miou"] > float(np.mean(m)))} for b, m in sorted(students.items())}
+    weaker = [f"{b} ({100 * r['student_val_miou']:.2f})" for b, r in per.items() if not r["labeler_stronger"]]
+    warning = None if not weaker else (
+        f"the labeler (val mIoU {100 * labeler['val_miou']:.2f}) scores below the supervised-only "
+        f"{', '.join(weaker)} it labels for: its pseudo-labels cannot teach that student")
+    return {"compared": True, "students": per, "warning": warning}
+
+
+def warn_about_labeler(check: dict) -> None:
+    """Print a labeler check's warning on the terminal (stderr), if any."""
+    if check.get("warning"):
+        print(f"WARNING: {check['warning']}", file=sys.stderr, flush=True)
 
 
 def runs_by_seed(evals: list[dict]) -> dict:

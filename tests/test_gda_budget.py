@@ -1,0 +1,82 @@
+"""The budget study: GDA gain against the generator's training compute, seed-paired, with a trend."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from omnilidar.cli import main
+from omnilidar.errors import InputError
+from omnilidar.report import budget as bg
+from test_downstream_seg import _eval
+
+
+def _seeded(role, miou, seed, tag="x"):
+    doc = _eval("minkunet", role, miou)
+    doc["seed"], doc["_path"] = seed, f"{role}_{tag}_{seed}.json"
+    return doc
+
+
+def _write(tmp_path, doc):
+    path = tmp_path / doc["_path"]
+    path.write_text(json.dumps({k: v for k, v in doc.items() if k != "_path"}))
+    return str(path)
+
+
+def test_trend_predicts_where_a_rising_gain_crosses_each_level():
+    budgets = [{"iterations": n, "train_cpu_minutes": m, "gain_over_supervised": {"mean": g}}
+               for n, m, g in ((100, 1.0, -0.06), (1000, 10.0, -0.02), (10000, 100.0, 0.02))]
+    out = bg.trend(budgets, {"supervised_only": 0.0, "real_pseudo": 0.06})
+    assert out["fit"]["slope_per_decade"] == pytest.approx(0.04)
+    sup = out["crossings"]["supervised_only"]
+    assert sup["first_measured_budget"] == 10000 and sup["first_measured_cpu_minutes"] == 100.0
+    assert sup["trend_cpu_minutes"] == pytest.approx(10 ** 1.5) and sup["trend_iterations"] == 3162
+    rp = out["crossings"]["real_pseudo"]
+    assert rp["first_measured_budget"] is None and rp["trend_cpu_minutes"] == pytest.approx(1000.0)
+    flat = bg.trend([{**b, "gain_over_supervised": {"mean": -0.05}} for b in budgets], {"supervised_only": 0.0})
+    assert flat["crossings"]["supervised_only"]["trend_cpu_minutes"] is None
+    assert "no crossing predicted" in flat["crossings"]["supervised_only"]["note"]
+
+
+def test_budget_command_pairs_seeds_and_writes_result_and_figure(tmp_path, capsys):
+    refs = [_seeded("supervised_only", m, s) for s, m in enumerate([0.10, 0.12, 0.11])]
+    refs += [_seeded("real_pseudo", m, s) for s, m in enumerate([0.15, 0.16, 0.17])]
+    source = '{"semantickitti": {"root": "data/synthetic/semantickitti", "kind": "synthetic"}}'
+    args = ["gda-budget", "--settings", "{}", "--seed", "0", "--data-source", source,
+            "--evaluations", *[_write(tmp_path, d) for d in refs],
+            "--labeler-evaluation", _write(tmp_path, {**_eval("minkunet", "labeler", 0.3), "_path": "lab.json"}),
+            "--out", str(tmp_path / "budget.json"), "--figure", str(tmp_path / "budget.png")]
+    for n, cpu, gains in ((100, 60.0, [-0.05, -0.04, -0.06]), (1000, 600.0, [0.01, 0.0, 0.02])):
+        gen = tmp_path / f"gen{n}.pt"
+        torch.save({"iterations": n, "train_seconds": cpu / 2, "train_cpu_seconds": cpu}, gen)
+        quality = tmp_path / f"q{n}.json"
+        quality.write_text(json.dumps({"metrics": {"FRD": 100.0 / n, "JSD": 0.3, "MMD": 1e-3}, "n_generated": 4}))
+        args += ["--budget", f"{n}={gen}={quality}"]
+        for s, g in enumerate(gains):
+            args += ["--run", f"{n}={_write(tmp_path, _seeded('gda', [0.10, 0.12, 0.11][s] + g, s, n))}"]
+    assert main(args) == 0
+    doc = json.loads((tmp_path / "budget.json").read_text())
+    low, high = doc["budgets"]
+    assert low["gain_over_supervised"]["per_seed"] == pytest.approx([-0.05, -0.04, -0.06])
+    assert low["train_cpu_minutes"] == pytest.approx(1.0) and high["train_cpu_minutes"] == pytest.approx(10.0)
+    assert high["quality"]["FRD"] == pytest.approx(0.1)
+    assert doc["reference"]["real_pseudo_gain"]["mean"] == pytest.approx(0.05)
+    assert doc["trend"]["crossings"]["supervised_only"]["first_measured_budget"] == 1000
+    assert doc["trend"]["crossings"]["real_pseudo"]["trend_cpu_minutes"] > 10.0
+    assert doc["labeler_check"]["students"]["minkunet"]["labeler_stronger"] is True
+    assert (tmp_path / "budget.png").stat().st_size > 10_000
+    out = capsys.readouterr().out
+    assert "1000 it. (10.0 CPU-min): GDA gain 1.00 +- 1.00" in out
+    # A budget's runs with other seeds than the reference rows: one clear error, no result.
+    (tmp_path / "budget.json").unlink()
+    bad = [a if "gda_1000_2" not in a else a.replace("gda_1000_2", "gda_1000_1") for a in args]
+    assert main(bad) != 0 and not (tmp_path / "budget.json").exists()
+
+
+def test_a_generator_without_its_training_cost_is_refused():
+    with pytest.raises(InputError, match="train_cpu_seconds"):
+        bg.budget_record(100, {"path": "g.pt"}, {"metrics": {}, "n_generated": 2},
+                         [_seeded("gda", 0.1, 0)], {"seeds": [0], "miou": [0.1]}, {"seeds": [0], "miou": [0.1]})
