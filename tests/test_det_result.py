@@ -53,6 +53,20 @@ def test_result_compares_runs_and_records_the_labeler(tmp_path):
     assert doc["labeler"]["val_ap"]["Car"]["3d_R11@0.5"] == 55.0 and doc["labeler"]["pseudo_boxes"]["Car"] == 30
     assert doc["timings"]["pseudo_boxes"] == 4.5 and doc["timings"]["train_pv_rcnn_gda"] == 12.0
     assert (tmp_path / "r.png").stat().st_size > 10_000
+    # The box labeler (55 AP) is above both supervised-only detectors: no warning.
+    check = doc["labeler_check"]
+    assert check["warning"] is None and check["students"]["pv_rcnn"]["Car"] == {
+        "student_ap": 1.0, "labeler_ap": 55.0, "labeler_stronger": True}
+    assert "WARNING" not in res.stderr
+    # A labeler below a student it labels for: said in the JSON and on the terminal.
+    labeler.write_text(json.dumps(evaluation("voxel_rcnn", "labeler", 0.8)))
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr[-2000:]
+    check = json.loads((tmp_path / "r.json").read_text())["labeler_check"]
+    assert check["students"]["pv_rcnn"]["Car"]["labeler_stronger"] is False
+    assert check["students"]["voxel_rcnn"]["Car"]["labeler_stronger"] is True  # 0.8 > 0.5
+    assert "pv_rcnn Car (1.00 against the labeler's 0.80)" in check["warning"]
+    assert "WARNING: the box labeler's val 3d_R11@0.5 is not above" in res.stderr
 
 
 def test_result_needs_both_runs_of_each_detector(tmp_path):

@@ -439,3 +439,37 @@ def test_round_trip_rows_measure_each_link_from_the_ceiling_to_gda():
     total = np.sum([study["links"][k]["per_seed"] for k in dc.CHAIN], axis=0)
     gap = np.asarray(values["real_truth"]) - np.asarray(values["gda"])
     assert total == pytest.approx(gap)
+
+
+def test_sample_quality_scores_generated_scans_against_held_out_real_scans(study_tree, tmp_path):
+    """sample-quality: the pool's own range images score JSD = MMD = 0 against the pool; noisy
+    images score worse; too few scans is one clear error and no file."""
+    from omnilidar.data.range_image import RangeImageSpec, encode, project
+    from omnilidar.lidar.sensors import PRESETS
+
+    root, _ = study_tree
+    geometry = {"height": 32, "width": 256}
+    spec = RangeImageSpec.from_sensor(PRESETS["kitti_hdl64e"], **geometry)
+    pool = subsets.read_subset(root / "pool.json")
+    rng = np.random.default_rng(0)
+    for name, noise in (("same", 0.0), ("noisy", 0.3)):
+        shard = tmp_path / name / "shard_0" / "range"
+        shard.mkdir(parents=True)
+        for k, entry in enumerate(pool["entries"]):
+            proj = project(semantickitti.read_points(entry["points"]), spec)
+            image = encode(proj.range_img, proj.intensity_img, spec)
+            image[0] = np.clip(image[0] + noise * rng.standard_normal(image[0].shape), -1, 1)
+            np.savez(shard / f"{k:06d}.npz", image=image.astype(np.float32))
+    scores = {}
+    for name in ("same", "noisy"):
+        out = tmp_path / f"{name}.json"
+        assert main(["sample-quality", "--subset", str(root / "pool.json"), "--samples",
+                     str(tmp_path / name / "shard_0"), "--scans", "3", "--metrics", "JSD", "MMD",
+                     "--range-image", json.dumps(geometry), "--out", str(out)]) == 0
+        scores[name] = json.loads(out.read_text())
+    assert scores["same"]["metrics"] == {"JSD": 0.0, "MMD": 0.0} and scores["same"]["n_real"] == 3
+    assert scores["noisy"]["metrics"]["JSD"] > 0.01 and scores["noisy"]["metrics"]["MMD"] > 0
+    bad = tmp_path / "bad.json"
+    assert main(["sample-quality", "--subset", str(root / "pool.json"), "--samples", str(tmp_path / "same" / "shard_0"),
+                 "--scans", "4", "--metrics", "JSD", "--range-image", json.dumps(geometry), "--out", str(bad)]) != 0
+    assert not bad.exists()

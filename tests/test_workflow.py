@@ -176,3 +176,36 @@ def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path):
     jobs = planned_jobs(wd, "results/data_summary.json", "--configfile", TINY)
     shards = sum(_shard_counts(load_config(wd / TINY)).values())
     assert jobs == {"synthesize": shards, "index_dataset": 4, "data_summary": 1}
+
+
+def test_one_gpu_profile_plans_full_resolution_and_runs_tiny_on_the_cpu(tmp_path):
+    """config/gpu.yaml laid over the default: the generator on whole 64 x 1024 sweeps, a wider labeler
+    trained longer, the students' regime unchanged. Laid over the tiny config with tiny sizes, its
+    model and schedule settings train and sample for real on the CPU (devices stay `auto`)."""
+    wd = copy_workflow(tmp_path)
+    args = ("results/semkitti_1pct.json", "results/gda_decomposition.json",
+            "--configfile", "config/config.yaml", "config/gpu.yaml")
+    out = snakemake(wd, "--dry-run", "--printshellcmds", *args).stdout
+    train = next(line for line in out.splitlines() if "omnilidar train-generator" in line)
+    assert '"height": 64' in train and '"width": 1024' in train and '"crop_width": null' in train
+    assert '"iterations": 8000' in train and '"base_channels": 32' in train
+    labeler = next(line for line in out.splitlines() if "omnilidar train-labeler" in line)
+    assert '"width": "W32"' in labeler and '"iterations": 2000' in labeler
+    students = [line for line in out.splitlines() if "omnilidar train-segmentor" in line]
+    assert students and all('"iterations": 200' in line and '"voxel_size": 0.3' in line for line in students)
+    assert all('"device": "auto"' in line for line in students + [labeler])
+    assert "omnilidar round-trip-pool vehicle" in out and '"width": 1024' in out.split("round-trip-pool")[1][:600]
+    # The same keys, tiny: a real generator training and sampling, and a real labeler, on the CPU.
+    (wd / "tiny_gpu.yaml").write_text(yaml.safe_dump({
+        "domains": {"range_image": {"height": 32, "width": 256}},
+        "generator": {"range_image": {"height": 32, "width": 256}, "model": {"base_channels": 8},
+                      "training": {"iterations": 2, "batch_size": 2, "warmup_iters": 1, "checkpoint_interval": 1,
+                                   "log_interval": 1, "num_workers": 0},
+                      "sampling": {"steps": 2, "batch_size": 2, "scans_per_domain": 2, "scans_per_shard": 2}},
+        "downstream": {"labeler": {"schedule": {"iterations": 2, "checkpoint_interval": 1, "log_interval": 1}}},
+    }))
+    snakemake(wd, "data/samples/Vehicle/shard_0", "data/labeler/semantickitti.val.json",
+              "--configfile", TINY, "config/gpu.yaml", "tiny_gpu.yaml")
+    assert len(list((wd / "data" / "samples" / "Vehicle" / "shard_0" / "velodyne").glob("*.bin"))) == 2
+    scores = yaml.safe_load((wd / "data" / "labeler" / "semantickitti.val.json").read_text())
+    assert scores["model"]["width"] == "W32" and 0.0 <= scores["sets"]["val"]["miou"] <= 1.0

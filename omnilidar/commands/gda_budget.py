@@ -41,8 +41,9 @@ def run(args) -> int:
     import torch
 
     from omnilidar.config import validate
+    from omnilidar.downstream.labeler_warning import warn_about_labeler
     from omnilidar.downstream.seg.experiments import (labeler_against_students, labeler_quality, read_evaluation,
-                                                      runs_by_seed, seed_statistics, warn_about_labeler)
+                                                      runs_by_seed, seed_statistics)
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
     from omnilidar.io.json_file import read_json

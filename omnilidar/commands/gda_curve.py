@@ -25,8 +25,8 @@ def run(args) -> int:
     import json
 
     from omnilidar.config import validate
-    from omnilidar.downstream.seg.experiments import (labeler_against_students, labeler_quality, read_evaluation,
-                                                     warn_about_labeler)
+    from omnilidar.downstream.labeler_warning import warn_about_labeler
+    from omnilidar.downstream.seg.experiments import labeler_against_students, labeler_quality, read_evaluation
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
     from omnilidar.provenance import envelope

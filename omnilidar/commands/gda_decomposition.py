@@ -31,8 +31,8 @@ def run(args) -> int:
 
     from omnilidar.config import validate
     from omnilidar.dicts import deep_merge
-    from omnilidar.downstream.seg.experiments import (labeler_against_students, labeler_quality, read_evaluation,
-                                                     warn_about_labeler)
+    from omnilidar.downstream.labeler_warning import warn_about_labeler
+    from omnilidar.downstream.seg.experiments import labeler_against_students, labeler_quality, read_evaluation
     from omnilidar.downstream.seg.pseudo_label import SIDECAR
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic

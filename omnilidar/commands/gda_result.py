@@ -25,6 +25,7 @@ def run(args) -> int:
     import json
     from pathlib import Path
 
+    from omnilidar.downstream.labeler_warning import warn_about_labeler
     from omnilidar.downstream.seg import experiments as ex
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
@@ -74,6 +75,6 @@ def run(args) -> int:
                   f"-> GDA {100 * gda['miou_mean']:.2f}{spread(gda)} mIoU ({run['seeds']} seed(s))")
     if "labeler" in numbers:
         print(f"labeler (writes every pseudo-label): val mIoU {100 * numbers['labeler']['val_miou']:.2f}")
-        ex.warn_about_labeler(numbers["labeler_check"])
+        warn_about_labeler(numbers["labeler_check"])
     print(f"result: {args.out}  figure: {args.figure}")
     return 0

@@ -26,6 +26,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from omnilidar.downstream.det import experiments as ex
+    from omnilidar.downstream.labeler_warning import warn_about_labeler
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
     from omnilidar.provenance import envelope
@@ -47,6 +48,7 @@ def run(args) -> int:
                    "filter) at IoU 0.5: Car's second overlap set, Pedestrian's first; R11 and R40 in percent"),
         "val_frames": evals[0]["frames"],
     }
+    numbers["labeler_check"] = ex.box_labeler_check(numbers["labeler"], numbers["runs"])
     doc = envelope(args.experiment, "pi3det-result", args.settings, {"seed": args.seed},
                    ex.timings(evals, labeler, sidecars), args.data_source, **numbers)
     write_text_atomic(args.out, json.dumps(doc, indent=1, default=str))
@@ -56,5 +58,6 @@ def run(args) -> int:
         for cls in run["supervised_only"]["ap"]:
             print(f"{detector} {cls}: 3D R11@0.5 {run['supervised_only']['ap'][cls]['3d_R11@0.5']:.2f} -> GDA "
                   f"{run['gda']['ap'][cls]['3d_R11@0.5']:.2f}")
+    warn_about_labeler(numbers["labeler_check"])
     print(f"result: {args.out}  figure: {args.figure}")
     return 0

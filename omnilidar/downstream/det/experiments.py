@@ -81,6 +81,23 @@ def labeler_record(ev: dict, sidecars: list[dict]) -> dict:
             "generated_scans": sum(s["scans"] for s in sidecars), "pseudo_boxes": boxes}
 
 
+def box_labeler_check(labeler: dict, runs: dict, metric: str = "3d_R11@0.5") -> dict:
+    """Is the box labeler stronger than every supervised-only detector it labels for? Per detector
+    and class, its val AP against the student's; a ``warning`` sentence when it is not."""
+    students = {}
+    for detector, run in runs.items():
+        students[detector] = {c: {"student_ap": run["supervised_only"]["ap"][c][metric],
+                                  "labeler_ap": labeler["val_ap"][c][metric],
+                                  "labeler_stronger": bool(labeler["val_ap"][c][metric] > run["supervised_only"]["ap"][c][metric])}
+                              for c in run["supervised_only"]["ap"] if c in labeler["val_ap"]}
+    weaker = [f"{d} {c} ({r['student_ap']:.2f} against the labeler's {r['labeler_ap']:.2f})"
+              for d, per in students.items() for c, r in per.items() if not r["labeler_stronger"]]
+    warning = None if not weaker else (
+        f"the box labeler's val {metric} is not above the supervised-only {', '.join(weaker)}: its pseudo-boxes "
+        "cannot teach that student")
+    return {"metric": metric, "students": students, "warning": warning}
+
+
 def timings(evals: list[dict], labeler: dict, sidecars: list[dict]) -> dict:
     """Wall time (s) per stage: labeler training, pseudo-boxing, every training and evaluation."""
     t = {"labeler_train": labeler["train"].get("seconds"), "labeler_evaluate": labeler["timings"]["evaluate_seconds"],

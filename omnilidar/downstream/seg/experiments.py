@@ -9,7 +9,6 @@ the paper reports (REFERENCE section 9) and, for the corrupted sets, mCE / mRR.
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -77,12 +76,6 @@ def labeler_against_students(labeler: dict, evals: list[dict]) -> dict:
         f"the labeler (val mIoU {100 * labeler['val_miou']:.2f}) scores below the supervised-only "
         f"{', '.join(weaker)} it labels for: its pseudo-labels cannot teach that student")
     return {"compared": True, "students": per, "warning": warning}
-
-
-def warn_about_labeler(check: dict) -> None:
-    """Print a labeler check's warning on the terminal (stderr), if any."""
-    if check.get("warning"):
-        print(f"WARNING: {check['warning']}", file=sys.stderr, flush=True)
 
 
 def runs_by_seed(evals: list[dict]) -> dict:

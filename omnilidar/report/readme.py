@@ -1,0 +1,116 @@
+"""Result blocks of README and docs, written from result JSON files so that they cannot drift.
+
+A page holds blocks between ``<!-- results:NAME -->`` and ``<!-- /results:NAME -->``; each
+block is rendered from ``<results>/NAME.json`` by the function of that name below. ``omnilidar
+docs`` rewrites the blocks; ``--check`` fails when a page and its result files disagree.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from omnilidar.errors import InputError
+from omnilidar.io.json_file import read_json
+
+BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.S)
+
+
+def _pm(mean: float, std: float | None, scale: float = 100.0) -> str:
+    return f"{scale * mean:.2f}" + ("" if std is None else f" +- {scale * std:.2f}")
+
+
+def _seeds(values: list[float]) -> str:
+    return ", ".join(f"{100 * v:.2f}" for v in values)
+
+
+def _labeler_line(doc: dict) -> str:
+    lab = doc.get("labeler")
+    if not lab:
+        return ""
+    check = doc.get("labeler_check") or {}
+    verdict = ("stronger than every student it labels for" if check.get("compared") and not check.get("warning")
+               else check.get("warning") or check.get("note", ""))
+    return (f"Labeler (trained once on 100 % of the real train labels): val mIoU {100 * lab['val_miou']:.2f}, "
+            f"car IoU {100 * lab['val_iou'].get('car', 0.0):.1f}; {verdict}.")
+
+
+def semkitti_1pct(doc: dict) -> str:
+    """Supervised-only against GDA per backbone, every seed."""
+    lines = ["| backbone | seeds | supervised only | GDA | gain per seed |", "|---|---|---|---|---|"]
+    for backbone, run in doc["runs"].items():
+        sup, gda = run["supervised_only"]["across_seeds"], run["gda"]["across_seeds"]
+        lines.append(f"| {backbone} | {run['seeds']} | {_pm(sup['miou_mean'], sup['miou_std'])} | "
+                     f"{_pm(gda['miou_mean'], gda['miou_std'])} | {_seeds(run['miou_gain_per_seed'])} |")
+    return "\n".join(lines + ["", _labeler_line(doc)])
+
+
+def gda_decomposition(doc: dict) -> str:
+    """Each row per backbone (val), the chain's links seed by seed, the regime check."""
+    from omnilidar.report.decomposition import CHAIN, LINKS, ROW_LABELS
+
+    studies = doc["backbones"]
+    names = list(studies)
+    lines = ["| row | " + " | ".join(f"{b} {doc['setup']['evalset']}" for b in names) + " |",
+             "|---|" + "---|" * len(names)]
+    for row in next(iter(studies.values()))["rows"]:
+        cells = [_pm(studies[b]["rows"][row]["miou_mean"], studies[b]["rows"][row]["miou_std"]) for b in names]
+        lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
+    lines += ["", "| link (points lost, seed-paired) | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    for link in [k for k in CHAIN if all(k in studies[b]["links"] for b in names)] or ["pseudo_labels", "samples"]:
+        cells = [_pm(studies[b]["links"][link]["mean"], studies[b]["links"][link]["std"]) for b in names]
+        lines.append(f"| {link} ({LINKS[link][0]} - {LINKS[link][1]}) | " + " | ".join(cells) + " |")
+    lines.append("")
+    for b in names:
+        st = studies[b]
+        check, gen = st["regime_check"], st["rows"]["generated"]["gain_over_supervised"]
+        clears = "clears" if check.get("ceiling_clears_two_std") else "does not clear"
+        held = (f"ceiling gain on the held-out sequence {_pm(check['ceiling_gain']['mean'], check['ceiling_gain']['std'])} "
+                f"against 2 std {100 * check['two_std']:.2f} ({clears})" if check.get("set") else "no held-out check")
+        lines.append(f"- {b} (seeds {', '.join(str(s) for s in st['seeds'])}): GDA against supervised only "
+                     f"{_pm(gen['mean'], gen['std'])} points; costliest link {st['costliest_link']}; {held}.")
+    return "\n".join(lines + ["", _labeler_line(doc)])
+
+
+def gda_budget(doc: dict) -> str:
+    """Per budget: compute, sample quality, GDA gain; where the trend crosses each level."""
+    budgets = doc["budgets"]
+    metrics = list(budgets[0]["quality"])
+    lines = ["| generator iterations | CPU-minutes | " + " | ".join(metrics) + " | GDA gain over supervised only |",
+             "|---|---|" + "---|" * len(metrics) + "---|"]
+    for b in budgets:
+        q = [f"{b['quality'][m]:.4g}" if b["quality"][m] is not None else "-" for m in metrics]
+        gain = b["gain_over_supervised"]
+        lines.append(f"| {b['iterations']} | {b['train_cpu_minutes']:.1f} | " + " | ".join(q) + f" | "
+                     f"{_pm(gain['mean'], gain['std'])} |")
+    ref = doc["reference"]
+    lines += ["", f"Supervised only {_pm(ref['supervised_only']['miou_mean'], ref['supervised_only']['miou_std'])}; "
+                  f"+N real scans with the labeler's labels gain {_pm(ref['real_pseudo_gain']['mean'], ref['real_pseudo_gain']['std'])} "
+                  f"(seeds {', '.join(str(s) for s in ref['seeds'])})."]
+    for name, cross in doc["trend"]["crossings"].items():
+        if cross["first_measured_budget"] is not None:
+            where = f"reached at {cross['first_measured_budget']} iterations"
+        elif cross.get("trend_cpu_minutes"):
+            where = (f"not reached in the measured range; the trend "
+                     f"({100 * doc['trend']['fit']['slope_per_decade']:.2f} points per decade of compute) reaches it "
+                     f"near {cross['trend_iterations']} iterations ({cross['trend_cpu_minutes']:.0f} CPU-minutes)")
+        else:
+            where = "not reached; " + cross.get("note", "")
+        lines.append(f"- {name.replace('_', ' ')} level ({100 * cross['level_gain']:.2f}): {where}.")
+    return "\n".join(lines)
+
+
+RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget}
+
+
+def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
+    """``text`` with every results block rewritten from ``results/<name>.json``."""
+
+    def block(match: re.Match) -> str:
+        name = match["name"]
+        if name not in RENDERERS:
+            raise InputError(page, f"unknown results block {name!r} (known: {', '.join(RENDERERS)})")
+        doc = read_json(Path(results) / f"{name}.json", f"result file of block {name!r} not found")
+        return f"{match.group(1)}{RENDERERS[name](doc).rstrip()}\n{match.group(4)}"
+
+    return BLOCK.sub(block, text)

@@ -1,0 +1,50 @@
+"""README and docs quote result files through `omnilidar docs`: blocks are rewritten from the JSON
+files, and a page that disagrees with its files fails the check."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from omnilidar.cli import main
+from omnilidar.report import readme
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _semkitti():
+    def run(sup, gda):
+        stats = lambda v: {"miou_mean": sum(v) / len(v), "miou_std": 0.01, "miou": v}  # noqa: E731
+        return {"supervised_only": {"across_seeds": stats(sup)}, "gda": {"across_seeds": stats(gda)}, "seeds": len(sup),
+                "miou_gain_per_seed": [g - s for g, s in zip(gda, sup)]}
+
+    return {"runs": {"minkunet": run([0.10, 0.12], [0.13, 0.14])},
+            "labeler": {"val_miou": 0.25, "val_iou": {"car": 0.8}},
+            "labeler_check": {"compared": True, "warning": None}}
+
+
+def test_blocks_are_rewritten_from_their_result_files_and_checked(tmp_path):
+    (tmp_path / "semkitti_1pct.json").write_text(json.dumps(_semkitti()))
+    page = tmp_path / "page.md"
+    page.write_text("intro\n<!-- results:semkitti_1pct -->\nstale 99.99\n<!-- /results:semkitti_1pct -->\nend\n")
+    assert main(["docs", str(page), "--results", str(tmp_path), "--check"]) == 1
+    assert "stale" in page.read_text()  # --check changes nothing
+    assert main(["docs", str(page), "--results", str(tmp_path)]) == 0
+    text = page.read_text()
+    assert "| minkunet | 2 | 11.00 +- 1.00 | 13.50 +- 1.00 | 3.00, 2.00 |" in text and "stale" not in text
+    assert "val mIoU 25.00, car IoU 80.0; stronger than every student it labels for." in text
+    assert text.startswith("intro\n") and text.endswith("<!-- /results:semkitti_1pct -->\nend\n")
+    assert main(["docs", str(page), "--results", str(tmp_path), "--check"]) == 0
+    # A block without its result file, or of an unknown kind: one clear error.
+    page.write_text("<!-- results:gda_budget -->\n<!-- /results:gda_budget -->\n")
+    assert main(["docs", str(page), "--results", str(tmp_path)]) != 0
+    page.write_text("<!-- results:nonsense -->\n<!-- /results:nonsense -->\n")
+    with pytest.raises(Exception, match="unknown results block"):
+        readme.render_page(page.read_text(), tmp_path, page)
+
+
+def test_readme_agrees_with_the_results_kept_in_docs():
+    """Every number README quotes in a results block is what docs/results/*.json holds."""
+    assert main(["docs", str(ROOT / "README.md"), "--results", str(ROOT / "docs" / "results"), "--check"]) == 0
