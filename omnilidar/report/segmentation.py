@@ -15,7 +15,8 @@ def iou_bars(panels: list[dict], out: str | Path, title: str = "") -> None:
     """One bar chart per panel, written atomically as PNG.
 
     Each panel: ``{"title": str, "classes": [names], "series": {label: {"iou": {class: fraction},
-    "miou": fraction}}}``; bars are percent, the legend carries each series' mIoU.
+    "miou": fraction}}}``; bars are percent, the legend carries each series' mIoU. A series over
+    several seeds also has ``iou_std``, ``miou_std`` and ``seeds``: error bars and mean +- std.
     """
     import matplotlib
 
@@ -32,8 +33,11 @@ def iou_bars(panels: list[dict], out: str | Path, title: str = "") -> None:
         width = 0.8 / max(1, len(series))
         for k, (label, s) in enumerate(series.items()):
             values = [100.0 * float(s["iou"].get(c, 0.0)) for c in classes]
-            ax.bar(x + (k - (len(series) - 1) / 2) * width, values, width,
-                   color=COLORS[k % len(COLORS)], label=f"{label} (mIoU {100 * s['miou']:.1f})")
+            errors = [100.0 * float(s["iou_std"].get(c, 0.0)) for c in classes] if "iou_std" in s else None
+            miou = (f"mIoU {100 * s['miou']:.1f} +- {100 * s['miou_std']:.1f}, {s['seeds']} seeds" if errors
+                    else f"mIoU {100 * s['miou']:.1f}")
+            ax.bar(x + (k - (len(series) - 1) / 2) * width, values, width, yerr=errors, capsize=2,
+                   color=COLORS[k % len(COLORS)], label=f"{label} ({miou})")
         ax.set_xticks(x, classes, rotation=45, ha="right", fontsize=8)
         ax.set_ylabel("IoU (%)")
         ax.set_ylim(0, 100)

@@ -220,10 +220,21 @@ def figure_panels(kind: str, evals: list[dict]) -> list[dict]:
         sets = ["val"] if kind in ("semkitti", "nusc_beam32") else list(roles["supervised_only"]["sets"])
         for s in sets:
             classes = roles["supervised_only"]["class_names"]
-            series = {("supervised-only" if r == "supervised_only" else "GDA"): roles[r]["sets"][s]
+            series = {("supervised-only" if r == "supervised_only" else "GDA"): _series(by_seed[r], s)
                       for r in ("supervised_only", "gda") if r in roles}
             panels.append({"title": f"{backbone} - {s}", "classes": classes, "series": series})
     return panels
+
+
+def _series(docs: list[dict], evalset: str) -> dict:
+    """One bar series: a run's scores on ``evalset``, or with several seeds their mean per class with
+    the standard deviations (``iou_std``, ``miou_std``) and the seed count."""
+    if len(docs) == 1:
+        return docs[0]["sets"][evalset]
+    stats = seed_statistics(docs, evalset)
+    iou_std = {c: float(np.std([d["sets"][evalset]["iou"][c] for d in docs], ddof=1)) for c in stats["iou_mean"]}
+    return {"iou": stats["iou_mean"], "miou": stats["miou_mean"], "iou_std": iou_std,
+            "miou_std": stats["miou_std"], "seeds": len(docs)}
 
 
 def timings(evals: list[dict], pseudo_sidecars: list[dict]) -> dict:
