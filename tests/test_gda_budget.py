@@ -70,6 +70,13 @@ def test_budget_command_pairs_seeds_and_writes_result_and_figure(tmp_path, capsy
     assert (tmp_path / "budget.png").stat().st_size > 10_000
     out = capsys.readouterr().out
     assert "1000 it. (10.0 CPU-min): GDA gain 1.00 +- 1.00" in out
+    # README's block is written from this file (omnilidar docs).
+    from omnilidar.report.readme import gda_budget
+
+    block = gda_budget(doc)
+    assert "| 1000 | 10.0 | 0.1 | 0.3 | 0.001 | 1.00 +- 1.00 |" in block
+    assert "- supervised only level (0.00): reached at 1000 iterations." in block
+    assert "- real pseudo level (5.00): not reached in the measured range; the trend" in block
     # A budget's runs with other seeds than the reference rows: one clear error, no result.
     (tmp_path / "budget.json").unlink()
     bad = [a if "gda_1000_2" not in a else a.replace("gda_1000_2", "gda_1000_1") for a in args]
