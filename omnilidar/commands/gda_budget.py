@@ -30,7 +30,7 @@ def _pairs(items: list[str], parts: int, flag: str) -> list[tuple[int, ...]]:
     for item in items:
         fields = item.split("=")
         if len(fields) != parts or not fields[0].isdigit() or not all(fields[1:]):
-            raise InputError(None, f"{flag} {item!r}: expected {'=' .join(['ITERATIONS'] + ['PATH'] * (parts - 1))}")
+            raise InputError(None, f"{flag} {item!r}: expected {'='.join(['ITERATIONS'] + ['PATH'] * (parts - 1))}")
         out.append((int(fields[0]), *fields[1:]))
     return out
 
