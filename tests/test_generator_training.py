@@ -86,6 +86,9 @@ def test_resume_after_interruption_reproduces_the_uninterrupted_run(trained):
     resumed = train_generator(settings, index, prompts, run2, root / "ckpt2.pt", seed=3)
     assert resumed["resumed_from"] == 2
     assert resumed["iterations"] == 3
+    # The cost carried over: the resumed run's total includes what iteration 2's checkpoint recorded.
+    before = torch.load(run2 / "iter_2.pth", weights_only=True)["meta"]["omnilidar"]["cost"]["train_cpu_seconds"]
+    assert before > 0 and resumed["train_cpu_seconds"] > before
     a = torch.load(root / "ckpt.pt", weights_only=True)["state_dict"]
     b = torch.load(root / "ckpt2.pt", weights_only=True)["state_dict"]
     assert a.keys() == b.keys()

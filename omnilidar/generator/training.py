@@ -95,7 +95,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
 # --------------------------------------------------------------------------- hooks
 
 
-def make_hooks(settings: dict, domain_names: list[str], seed: int, provenance: dict) -> list:
+def make_hooks(settings: dict, domain_names: list[str], seed: int, provenance: dict, cost=None) -> list:
     """Our custom hooks: weights-only-safe checkpoints (+ resolved config) and the step counter."""
     from mmengine.hooks import Hook
     from mmengine.model import is_model_wrapper
@@ -110,7 +110,17 @@ def make_hooks(settings: dict, domain_names: list[str], seed: int, provenance: d
             model.iteration = runner.iter
 
     meta = {"config": settings, "domains": list(domain_names), "seed": int(seed), "provenance": provenance}
-    return [*weights_only_hooks(meta), IterationHook()]
+    hooks = [*weights_only_hooks(meta), IterationHook()]
+    if cost is not None:  # each checkpoint carries the training cost so far, resumed parts included
+
+        class CostHook(Hook):
+            priority = "VERY_HIGH"
+
+            def before_save_checkpoint(self, runner, checkpoint: dict) -> None:
+                meta["cost"] = cost()
+
+        hooks.append(CostHook())
+    return hooks
 
 
 # --------------------------------------------------------------------------- entry point
@@ -257,6 +267,17 @@ def train_generator(
             dict(type="LinearLR", start_factor=1e-3, by_epoch=False, begin=0, end=tr["warmup_iters"] + 1)
         ]
 
+    # What training cost so far (for the budget study): the resumed checkpoint's cost plus this run's.
+    prior = {"train_seconds": 0.0, "train_cpu_seconds": 0.0}
+    if resume_from:
+        stored = torch.load(resume_from, map_location="cpu", weights_only=True).get("meta", {})
+        prior.update(stored.get("omnilidar", {}).get("cost", {}))
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+
+    def training_cost() -> dict:
+        return {"train_seconds": round(prior["train_seconds"] + time.perf_counter() - wall0, 2),
+                "train_cpu_seconds": round(prior["train_cpu_seconds"] + time.process_time() - cpu0, 2)}
+
     runner = Runner(
         model=model,
         work_dir=str(run_dir),
@@ -265,7 +286,7 @@ def train_generator(
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
         default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
-        custom_hooks=[ema_hook(tr), *make_hooks(settings, names, seed, provenance)],
+        custom_hooks=[ema_hook(tr), *make_hooks(settings, names, seed, provenance, training_cost)],
         launcher=launcher,
         # A CPU module takes no device_ids (mmengine's default passes LOCAL_RANK).
         cfg=None if cuda or world == 1 else dict(model_wrapper_cfg=dict(
@@ -278,10 +299,8 @@ def train_generator(
         f"{len(dataset)} scans, strategy {tr['strategy']}, {tr['iterations']} iterations"
         + (f", resuming at iteration {skip} from {resume_from.name}" if resume_from else ", from scratch")
     )
-    # What this run's training cost (a resumed run counts only its own part), for the budget study.
-    wall0, cpu0 = time.perf_counter(), time.process_time()
     runner.train()
-    cost = {"train_seconds": round(time.perf_counter() - wall0, 2), "train_cpu_seconds": round(time.process_time() - cpu0, 2)}
+    cost = training_cost()
     if is_main_process():
         relative_marker(run_dir)
 
