@@ -1,10 +1,15 @@
 # What every job asks the scheduler for, derived from the config in one place:
-# gpu (only where the rule's settings run on CUDA), slurm_partition (config
-# resources.partitions), runtime (work in the config x a rate in resources.rates),
-# mem_mb and cpus_per_task (data-loader workers + 1). Rules use `resources: **job_resources("name")`.
+# gpu (only where the rule's settings run on CUDA and resources.gpus allows it),
+# slurm_partition (resources.partitions), runtime (work in the config x a rate in
+# resources.rates), mem_mb (host memory: interpreter and data, plus the activations of a
+# job that computes on the CPU, from batch x image or points x channels) and cpus_per_task
+# (data-loader workers + 1). Every job's request is checked against its partition's limits
+# (resources.partition_config, the SLURM executor plugin's own partition file format) when the
+# DAG is built, dry runs included. Rules use `resources: **job_resources("name")`.
 import math
 import os
 import sys
+from pathlib import Path
 
 RESOURCES = config["resources"]
 # Rates are for 64x1024 images; smaller images scale them down.
@@ -58,6 +63,66 @@ def _downstream_workers(*keys):
     return node["num_workers"] + 1
 
 
+class Work:
+    """Host memory of a job in MB beyond the interpreter: ``data_mb`` always, ``cpu_mb`` (the
+    activations) only when it computes on the CPU; a GPU job holds those on the device."""
+
+    def __init__(self, cpu_mb, data_mb=0):
+        self.cpu_mb, self.data_mb = cpu_mb, data_mb
+
+
+# Peak resident memory measured on the embedded default (snakemake benchmark files, CPU):
+# interpreter, torch and the stage's modules ~450 MB; generator training 1.07 GB at batch 8 of
+# 64 x 128 windows x 16 channels (~0.6 kB per pixel-channel of the batch); sampling 0.62 GB at
+# batch 8 of 64 x 512 x 16 (~0.05 kB); MinkUNet W16 training 0.68 GB and SPVCNN 1.23 GB at batch
+# 2 x 30k points x 16 channels (~0.25 and ~0.8 kB per point-channel); their evaluation ~0.7 GB.
+# The constants below round those up; resources.mem_margin covers the rest.
+BASE_MB = 1000
+WORKER_MB = 1000  # one DataLoader worker process: its own interpreter, torch and prefetched batches
+_KB_PER_UNIT = {"generator_train": 0.6, "generator_sample": 0.06, "minkunet": 0.3, "spvcnn": 0.9,
+                "inference": 0.1, "detector": 0.5}
+
+
+def _units_mb(units, kind):
+    return units * _KB_PER_UNIT[kind] / 1024
+
+
+def _channels(width):
+    """First-level channels of a segmentor width (W16 -> 16)."""
+    return int(width[1:])
+
+
+def _generator_train_work():
+    tr, ri = config["generator"]["training"], config["generator"]["range_image"]
+    window = min(tr["crop_width"] or ri["width"], ri["width"])
+    units = tr["batch_size"] * ri["height"] * window * config["generator"]["model"]["base_channels"]
+    return Work(_units_mb(units, "generator_train"))
+
+
+def _generator_sample_work(batch):
+    ri = config["generator"]["range_image"]
+    return Work(_units_mb(batch * ri["height"] * ri["width"] * config["generator"]["model"]["base_channels"],
+                          "generator_sample"))
+
+
+def _segmentor_work(batch, max_points, models, inference=False):
+    """The costliest backbone of ``models`` ({name: {width: ...}}) at ``batch`` scans of ``max_points``."""
+    points = max_points or 150_000  # no cap: a full 64-beam sweep
+    per_backbone = [_units_mb(batch * points * _channels(m["width"]), "inference" if inference else name)
+                    for name, m in models.items()]
+    return Work(max(per_backbone))
+
+
+_DOWN = config["downstream"]
+_LABELER = _DOWN["labeler"]
+_DET = _DOWN["det"]
+_GEN_TRAIN = config["generator"]["training"]
+_LABELER_MODEL = {_LABELER["backbone"]: _LABELER["model"]}
+_LABELER_WORK = _segmentor_work(_LABELER["schedule"]["batch_size"], _LABELER["max_points"], _LABELER_MODEL)
+_STUDENT_WORK = _segmentor_work(_DOWN["schedule"]["batch_size"], _DOWN["max_points"], _DOWN["models"])
+# A detector's voxels x points per voxel stand in for its points; channels as a W32-sized net.
+_DETECTOR_WORK = Work(_units_mb(_DET["schedule"]["batch_size"] * _DET["voxels"]["max_voxels_train"]
+                                * _DET["voxels"]["max_points_per_voxel"] * 32, "detector"))
 _EVAL = config["evaluation"]
 _DOWN_H = RESOURCES["rates"]["downstream_hours"] * 60
 # rule: (device setting that decides the GPU request: a value, True = always, False = never;
@@ -71,15 +136,16 @@ _RULES = {
     "build_corrupted": (False, 3000, 60, 1),
     "domain_fidelity": (False, 4000, 30, 1),
     "effects_tradeoff": (False, 4000, 60, 1),
-    "encode_prompts": (config["generator"]["text"]["device"], 8000, 20, 1),
-    "train_generator": (True, 32000, _runtime(_train_seconds(config["generator"]["training"]["iterations"])),
-                        config["generator"]["training"]["num_workers"] + 1),
-    "train_single_domain": (True, 32000, _runtime(_train_seconds(_baseline_iterations())),
-                            config["generator"]["training"]["num_workers"] + 1),
-    "sample_domain": (config["generator"]["sampling"]["device"], 16000,
+    "encode_prompts": (config["generator"]["text"]["device"], Work(1500), 20, 1),
+    "train_generator": (_GEN_TRAIN["device"], _generator_train_work(),
+                        _runtime(_train_seconds(_GEN_TRAIN["iterations"])), _GEN_TRAIN["num_workers"] + 1),
+    "train_single_domain": (_GEN_TRAIN["device"], _generator_train_work(),
+                            _runtime(_train_seconds(_baseline_iterations())), _GEN_TRAIN["num_workers"] + 1),
+    "sample_domain": (config["generator"]["sampling"]["device"],
+                      _generator_sample_work(config["generator"]["sampling"]["batch_size"]),
                       _runtime(sampling_seconds(config["generator"]["sampling"]["scans_per_shard"],
                                                 config["generator"]["sampling"]["steps"])), 2),
-    "sample_eval": (_EVAL["device"], 16000,
+    "sample_eval": (_EVAL["device"], _generator_sample_work(config["generator"]["sampling"]["batch_size"]),
                     lambda w: _runtime(sampling_seconds(config["generator"]["sampling"]["scans_per_shard"], int(w.steps))), 2),
     # Metric extractors train on the CPU (omnilidar.metrics.extractors.training).
     "train_extractor": (False, 8000, 6 * 60, 2),
@@ -104,19 +170,20 @@ _RULES = {
     "simulate_pool": (False, 3000, 60, 1),
     # Importing a user's checkpoint is a small CPU job; training the labeler is the long GPU one.
     "train_labeler": ((False, 4000, 15, 1) if config["downstream"]["labeler"]["checkpoint"] else
-                      (config["downstream"]["labeler"]["device"], 16000, _DOWN_H, _downstream_workers("labeler", "schedule"))),
-    "pseudo_label": (config["downstream"]["labeler"]["device"], 8000, 60, 2),
-    "train_supervised": (config["downstream"]["device"], 16000, _DOWN_H, _downstream_workers("schedule")),
-    "train_gda": (config["downstream"]["device"], 16000, _DOWN_H, _downstream_workers("schedule")),
-    "train_gda_curve": (config["downstream"]["device"], 16000, _DOWN_H, _downstream_workers("schedule")),
-    "evaluate_segmentor": (config["downstream"]["device"], 8000, 60, 2),
+                      (_LABELER["device"], _LABELER_WORK, _DOWN_H, _downstream_workers("labeler", "schedule"))),
+    "pseudo_label": (_LABELER["device"], _segmentor_work(_LABELER["batch_size"], None, _LABELER_MODEL, True), 60, 2),
+    "train_supervised": (_DOWN["device"], _STUDENT_WORK, _DOWN_H, _downstream_workers("schedule")),
+    "train_gda": (_DOWN["device"], _STUDENT_WORK, _DOWN_H, _downstream_workers("schedule")),
+    "train_gda_curve": (_DOWN["device"], _STUDENT_WORK, _DOWN_H, _downstream_workers("schedule")),
+    "evaluate_segmentor": (_DOWN["device"], _segmentor_work(_DOWN["evaluation"]["batch_size"], None, _DOWN["models"], True),
+                           60, 2),
     "gda_result": (False, 1000, 10, 1),
     "gda_curve": (False, 1000, 10, 1),
     # Detection (rules/detection.smk): importing a user's labeler is a small CPU job.
-    "train_box_labeler": (config["downstream"]["det"]["device"], 16000, _DOWN_H, _downstream_workers("det", "labeler", "schedule")),
-    "pseudo_box": (config["downstream"]["det"]["device"], 8000, 60, 2),
-    "train_detector": (config["downstream"]["det"]["device"], 16000, _DOWN_H, _downstream_workers("det", "schedule")),
-    "evaluate_detector": (config["downstream"]["det"]["device"], 8000, 60, 2),
+    "train_box_labeler": (_DET["device"], _DETECTOR_WORK, _DOWN_H, _downstream_workers("det", "labeler", "schedule")),
+    "pseudo_box": (_DET["device"], Work(2000), 60, 2),
+    "train_detector": (_DET["device"], _DETECTOR_WORK, _DOWN_H, _downstream_workers("det", "schedule")),
+    "evaluate_detector": (_DET["device"], Work(2000), 60, 2),
     "pi3det_result": (False, 1000, 10, 1),
 }
 
@@ -131,18 +198,120 @@ if RESOURCES["one_job_per_core"] and workflow.local_exec and (workflow._cores or
     workflow.global_resources["_cores"] = MACHINE_CORES
 
 
+def _partition_limits():
+    """{partition: PartitionLimits} from resources.partition_config, a partition file in the SLURM
+    executor plugin's format read by the plugin's own reader; None without a file, or without the
+    plugin (then nothing is submitted to SLURM either)."""
+    source = RESOURCES["partition_config"]
+    if source is None:
+        return None
+    try:
+        from snakemake_executor_plugin_slurm.partitions import read_partition_file
+    except ImportError:
+        return None
+    path = Path(source) if os.path.isabs(source) else Path(workflow.basedir) / source
+    if not path.is_file():
+        sys.exit(f"Invalid configuration: resources.partition_config {source}: no such file")
+    # The plugin reads the same file when no --slurm-partition-config is given.
+    os.environ.setdefault("SNAKEMAKE_SLURM_PARTITIONS", str(path))
+    return {p.name: p.limits for p in read_partition_file(path)}
+
+
+PARTITION_LIMITS = _partition_limits()
+
+# The SLURM profile's account until the user sets one (workflow/profiles/slurm/config.yaml).
+ACCOUNT_PLACEHOLDER = "CHANGE_ME"
+
+
+def cluster_has_accounting():
+    """False when the running cluster keeps no accounting (AccountingStorageType none), so any
+    account is accepted; True when it does or when no cluster answers."""
+    import subprocess
+
+    try:
+        out = subprocess.run(["scontrol", "show", "config"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return True
+    return "accounting_storage/none" not in out
+
+
+def _check_account():
+    defaults = workflow.resource_settings.default_resources
+    account = defaults.get("slurm_account") if defaults is not None else None
+    if (account is not None and str(account.raw).strip("'\"") == ACCOUNT_PLACEHOLDER
+            and not os.environ.get("SBATCH_ACCOUNT") and cluster_has_accounting()):
+        sys.exit(f"The SLURM account is the profile's placeholder {ACCOUNT_PLACEHOLDER}: export SBATCH_ACCOUNT=<account>, "
+                 "pass --default-resources slurm_account=<account>, or set it in workflow/profiles/slurm/config.yaml")
+
+
+_check_account()
+
+
+def cluster_gpus():
+    """Whether jobs may ask for GPUs: resources.gpus true / false, or auto = where the GPU
+    partition's limits allow any (no partition limits known: wherever the stage runs on CUDA)."""
+    setting = RESOURCES["gpus"]
+    if setting != "auto":
+        return bool(setting)
+    if PARTITION_LIMITS is None:
+        return True
+    gpu = PARTITION_LIMITS.get(RESOURCES["partitions"]["gpu"])
+    return gpu is not None and gpu.max_gpu > 0
+
+
+_REMEDY = {"mem_mb": lambda r: f"resources.mem_mb: {{{r}: MB}}", "runtime": lambda r: f"resources.runtime: {{{r}: minutes}}",
+           "gpu": lambda r: "resources.gpus: false (no GPU anywhere)", "cpus_per_task": lambda r: "fewer num_workers"}
+
+
+class PartitionLimitExceeded(Exception):
+    """A job asks more than its partition allows."""
+
+
+def check_partition_fit(rule, partition, mem_mb, cpus, gpus, minutes):
+    """One clear error naming the rule, the request and the limit it exceeds."""
+    if PARTITION_LIMITS is None:
+        return
+    where = f"resources.partition_config {RESOURCES['partition_config']}"
+    limits = PARTITION_LIMITS.get(partition)
+    if limits is None:
+        raise PartitionLimitExceeded(f"rule {rule}: partition {partition} is not in {where}")
+    asks = [("mem_mb", mem_mb, limits.max_mem_mb, "MB of memory"), ("cpus_per_task", cpus, limits.max_cpus_per_task, "CPUs"),
+            ("gpu", gpus, limits.max_gpu, "GPUs"), ("runtime", minutes, limits.max_runtime, "minutes")]
+    for key, asked, limit, unit in asks:
+        if asked > limit:
+            raise PartitionLimitExceeded(
+                f"rule {rule} asks {asked} {unit} ({key}) but partition {partition} allows {limit:g} ({where}); "
+                f"lower the work in the config, raise the limit there, or set {_REMEDY[key](rule)}")
+
+
+def _mem_mb(work, gpus, cpus):
+    """Host memory (MB) of a job: fixed for a plain number, else derived from its Work."""
+    if not isinstance(work, Work):
+        return work
+    workers = max(0, cpus - 1)
+    mb = BASE_MB + workers * WORKER_MB + work.data_mb + (0 if gpus else work.cpu_mb)
+    return int(math.ceil(RESOURCES["mem_margin"] * mb))
+
+
 def job_resources(rule):
-    """Resources of one rule (see _RULES); config resources.mem_mb / resources.runtime replace them per rule."""
-    device, mem_mb, runtime, cpus = _RULES[rule]
+    """Resources of one rule (see _RULES); config resources.mem_mb / resources.runtime replace them
+    per rule. The request is checked against its partition when the job is created (dry runs too)."""
+    device, work, runtime, cpus = _RULES[rule]
     gpus = 0
-    if device is True or (device is not False and uses_cuda(device)):
+    if cluster_gpus() and (device is True or (device is not False and uses_cuda(device))):
         gpus = RESOURCES["generator_gpus"] if rule in ("train_generator", "train_single_domain") else 1
-    out = {
-        "mem_mb": RESOURCES["mem_mb"].get(rule, mem_mb),
-        "runtime": RESOURCES["runtime"].get(rule, runtime),
-        "cpus_per_task": cpus * max(1, gpus),
-        "slurm_partition": RESOURCES["partitions"]["gpu" if gpus else "cpu"],
-    }
+    cpus = cpus * max(1, gpus)
+    mem_mb = RESOURCES["mem_mb"].get(rule, _mem_mb(work, gpus, cpus))
+    runtime = RESOURCES["runtime"].get(rule, runtime)
+    partition = RESOURCES["partitions"]["gpu" if gpus else "cpu"]
+
+    def checked_mem_mb(wildcards):
+        check_partition_fit(rule, partition, mem_mb, cpus, gpus, runtime(wildcards) if callable(runtime) else runtime)
+        return mem_mb
+
+    out = {"mem_mb": checked_mem_mb, "runtime": runtime, "cpus_per_task": cpus, "slurm_partition": partition}
+    if os.environ.get("SBATCH_ACCOUNT"):  # sbatch's own variable; the plugin would pass the profile's -A over it
+        out["slurm_account"] = os.environ["SBATCH_ACCOUNT"]
     if gpus:
         out["gpu"] = gpus
     return out

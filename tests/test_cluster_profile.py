@@ -83,7 +83,7 @@ def test_sbatch_places_each_rule_on_its_partition_with_derived_requests(tmp_path
 
 
 def _dry_run_resources(workdir, *args):
-    out = snakemake(workdir, "--dry-run", *SLURM, *args)
+    out = snakemake(workdir, "--dry-run", *SLURM, "--default-resources", "slurm_account=testacct", *args)
     res = {}
     for block in re.split(r"\n(?=\[.*\]\n\s*(?:local)?rule )", out.stdout + out.stderr):
         rule, line = re.search(r"rule (\w+):", block), re.search(r"resources: (.*)", block)
@@ -119,3 +119,89 @@ def test_cpu_text_device_asks_no_gpu_and_multi_gpu_generator_uses_torchrun(workd
     assert res["train_generator"]["gpu"] == "4" and res["train_generator"]["cpus_per_task"] == "20"
     out = snakemake(workdir, "--dry-run", "-p", *PAPER, str(extra), "--", "data/generator/full/model.pt")
     assert "torchrun --standalone --nproc_per_node 4 $(which omnilidar) train-generator" in out.stdout
+
+
+def test_cpu_only_cluster_asks_no_gpu_anywhere(workdir, tmp_path):
+    cpu_only = tmp_path / "cpu_only.yaml"
+    cpu_only.write_text("resources: {gpus: false}\n")
+    res = _dry_run_resources(workdir, *PAPER, str(cpu_only), "--", "results/semkitti_1pct.json",
+                             "results/generation_quality.json")
+    assert {"train_generator", "train_labeler", "train_supervised", "sample_domain"} <= set(res)
+    assert all("gpu" not in r and r["slurm_partition"] == "cpu" for r in res.values()), res
+
+
+def test_auto_asks_gpus_only_where_the_partition_file_has_them(workdir, tmp_path):
+    parts = tmp_path / "parts.yaml"
+    parts.write_text("partitions:\n  gpu: {max_gpu: 0}\n  cpu: {max_gpu: 0}\n")
+    cfg = tmp_path / "no_gpus.yaml"
+    cfg.write_text(f"resources: {{partition_config: {parts}}}\n")
+    res = _dry_run_resources(workdir, *PAPER, str(cfg), "--", "data/generator/full/model.pt")
+    assert "gpu" not in res["train_generator"] and res["train_generator"]["slurm_partition"] == "cpu"
+    # The generator's own device setting: cpu asks no GPU even where the cluster has them.
+    cfg.write_text("generator: {training: {device: cpu}}\n")
+    res = _dry_run_resources(workdir, *PAPER, str(cfg), "--", "data/generator/full/model.pt")
+    assert "gpu" not in res["train_generator"]
+
+
+def test_memory_follows_the_work_and_a_job_over_its_partition_limit_is_refused(workdir, tmp_path):
+    target = ("--", "data/generator/full/model.pt")
+    cpu = tmp_path / "cpu.yaml"  # on the CPU the activations count too
+    cpu.write_text("resources: {gpus: false}\n")
+    small = _dry_run_resources(workdir, "--configfile", "config/test.yaml", str(cpu), *target)["train_generator"]
+    bigger = tmp_path / "bigger.yaml"
+    bigger.write_text("generator: {training: {batch_size: 64, crop_width: null}, model: {base_channels: 64}}\n")
+    big = _dry_run_resources(workdir, "--configfile", "config/test.yaml", str(cpu), str(bigger), *target)["train_generator"]
+    assert int(big["mem_mb"]) > int(small["mem_mb"]) + 1000, (small, big)
+    # The paper generator trains on a GPU: its host memory is interpreter, data and workers only.
+    paper = _dry_run_resources(workdir, *PAPER, *target)["train_generator"]
+    assert int(paper["mem_mb"]) < 16000
+
+    parts = tmp_path / "parts.yaml"
+    parts.write_text("partitions:\n  gpu: {max_gpu: 1, max_mem_mb: 1000}\n  cpu: {max_mem_mb: 1000}\n")
+    limits = tmp_path / "limits.yaml"
+    limits.write_text(f"resources: {{partition_config: {parts}}}\n")
+    out = snakemake(workdir, "--dry-run", *SLURM, "--default-resources", "slurm_account=testacct",
+                    "--configfile", "config/test.yaml", str(limits), *target, check=False)
+    text = out.stdout + out.stderr
+    assert out.returncode != 0
+    assert re.search(r"PartitionLimitExceeded: rule \w+ asks \d+ MB of memory \(mem_mb\) but partition \w+ allows 1000", text)
+    assert not (workdir / "data" / "generator" / "full" / "model.pt").exists()
+
+
+def test_placeholder_account_stops_a_dry_run_with_one_line(workdir, tmp_path):
+    env = {"PATH": f"{tmp_path}:{os.environ['PATH']}"}
+    (tmp_path / "scontrol").write_text("#!/bin/sh\necho 'AccountingStorageType   = accounting_storage/slurmdbd'\n")
+    (tmp_path / "scontrol").chmod(stat.S_IRWXU)
+    old = os.environ.copy()
+    os.environ.update(env)
+    os.environ.pop("SBATCH_ACCOUNT", None)
+    try:
+        out = snakemake(workdir, "--dry-run", *SLURM, *PAPER, "--", "results/semkitti_1pct.json", check=False)
+        assert out.returncode != 0
+        lines = [line for line in (out.stdout + out.stderr).splitlines() if "CHANGE_ME" in line]
+        assert len(lines) == 1 and "SBATCH_ACCOUNT" in lines[0] and "workflow/profiles/slurm/config.yaml" in lines[0]
+        os.environ["SBATCH_ACCOUNT"] = "myproject"
+        res = _dry_run_resources(workdir, *PAPER, "--", "results/semkitti_1pct.json")
+        assert res["train_supervised"]["slurm_account"] == "myproject"
+        # A cluster without accounting takes any account: the placeholder passes.
+        os.environ.pop("SBATCH_ACCOUNT")
+        (tmp_path / "scontrol").write_text("#!/bin/sh\necho 'AccountingStorageType   = accounting_storage/none'\n")
+        assert snakemake(workdir, "--dry-run", *SLURM, *PAPER, "--", "results/semkitti_1pct.json").returncode == 0
+    finally:
+        os.environ.clear()
+        os.environ.update(old)
+
+
+def test_paper_dry_run_fits_the_shipped_partition_limits(workdir):
+    import yaml
+
+    limits = yaml.safe_load((workdir / "workflow" / "profiles" / "slurm" / "partitions.yaml").read_text())["partitions"]
+    res = _dry_run_resources(workdir, *PAPER, "--", "all")
+    assert len(res) > 15 and "train_generator" in res
+    for rule, r in res.items():
+        if "slurm_partition" not in r:  # a local rule (an aggregate of results) runs beside Snakemake
+            continue
+        part = limits[r["slurm_partition"]]
+        assert int(r["runtime"]) <= 7 * 24 * 60, rule  # max_runtime 7-00:00:00
+        assert int(r["mem_mb"]) <= part["max_mem_mb"] and int(r["cpus_per_task"]) <= part["max_cpus_per_task"], rule
+        assert int(r.get("gpu", 0)) <= part["max_gpu"], rule

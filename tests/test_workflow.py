@@ -67,7 +67,8 @@ def test_unknown_config_key_fails_before_any_job(workdir, tmp_path):
 
 
 def test_slurm_profile_asks_gpus_for_gpu_rules_only(workdir):
-    out = snakemake(workdir, "--dry-run", "samples", "--workflow-profile", "workflow/profiles/slurm")
+    out = snakemake(workdir, "--dry-run", "samples", "--workflow-profile", "workflow/profiles/slurm",
+                    "--default-resources", "slurm_account=testacct")
     text = out.stdout + out.stderr
     jobs = re.split(r"\n(?=\[.*\]\n\s*rule |rule )", text)
     resources = {}

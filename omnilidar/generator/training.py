@@ -48,7 +48,18 @@ from omnilidar.generator.unet import build_denoiser, count_parameters
 
 # Keys that do not change what one training step computes: a run whose config differs
 # only in these resumes the same work directory (e.g. extending ``iterations``).
-_RESUMABLE_KEYS = ("iterations", "checkpoint_interval", "keep_checkpoints", "log_interval", "num_workers")
+_RESUMABLE_KEYS = ("iterations", "checkpoint_interval", "keep_checkpoints", "log_interval", "num_workers", "device")
+
+
+def use_training_device(name: str) -> None:
+    """generator.training.device: ``cpu`` hides CUDA from this process before anything asks for
+    it (mmengine's Runner moves the model to CUDA whenever it sees one); ``cuda`` requires it."""
+    from omnilidar.devices import resolve_device
+
+    if name == "cpu":
+        os.environ["CUDA_VISIBLE_DEVICES"] = ""
+    else:
+        resolve_device(name, "generator.training.device")
 
 
 def trajectory_settings(settings: dict) -> dict:
@@ -219,6 +230,7 @@ def train_generator(
     from omnilidar.io.atomic import atomic_path
 
     tr = settings["training"]
+    use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
     domains = read_domains_index(domains_index)
