@@ -1,11 +1,15 @@
 # OmniLiDAR GDA pipeline. Thin on purpose: configuration, validation, rule files.
 # Every cluster job re-parses this file, so nothing heavy is imported here.
+import os
+
 from snakemake.utils import min_version
 
 min_version("9.0")
 
 
-configfile: "config/config.yaml"
+# The embedded default: the working directory's config/config.yaml when it has one (a deployed
+# copy to edit), else the workflow's own, so the workflow also runs from an empty directory.
+configfile: "config/config.yaml" if os.path.exists("config/config.yaml") else f"{workflow.basedir}/config/config.yaml"
 
 
 include: "rules/common.smk"

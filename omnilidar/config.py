@@ -26,7 +26,16 @@ from referencing.jsonschema import DRAFT202012
 
 from omnilidar.errors import InputError
 
-SCHEMA_DIR = Path(__file__).resolve().parents[1] / "workflow" / "schemas"
+WORKFLOW_ROOT = Path(__file__).resolve().parents[1]
+SCHEMA_DIR = WORKFLOW_ROOT / "workflow" / "schemas"
+
+
+def workflow_file(path: str | Path) -> Path:
+    """A file the workflow ships (``config/detectors/voxel_rcnn.yaml``): as given when it exists
+    there (absolute, or relative to the working directory: a user's own copy), else relative to
+    the workflow, so a run from another working directory finds it."""
+    path = Path(path)
+    return path if path.is_absolute() or path.exists() else WORKFLOW_ROOT / path
 
 
 @functools.cache

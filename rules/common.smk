@@ -4,7 +4,7 @@ import os
 import re
 import sys
 
-from omnilidar.config import validate
+from omnilidar.config import validate, workflow_file
 from omnilidar.data_source import describe as describe_sources, mixed as sources_mixed, record as data_source_record
 from omnilidar.errors import InputError
 from omnilidar.manifest import listing_digest
@@ -679,7 +679,8 @@ def det_settings(*keys, detector=None):
 
 
 def detector_yaml(detector):
-    return DET_SECTION["detectors"][detector]["config"]
+    """The detector's yaml as an input path: relative to the workflow unless the working directory has it."""
+    return str(workflow_file(DET_SECTION["detectors"][detector]["config"]))
 
 
 def labeler_checkpoint(platform):

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 
 import pytest
 import yaml
 
 from omnilidar.config import load_config
-from workflow_helpers import copy_workflow, planned_jobs, rerun_reasons, snakemake, synthesized_shards
+from workflow_helpers import ROOT, copy_workflow, planned_jobs, rerun_reasons, snakemake, synthesized_shards
 
 TINY = "config/test.yaml"
 DATASETS = ("semantickitti", "kitti360", "pi3det", "nuscenes")
@@ -210,3 +212,20 @@ def test_one_gpu_profile_plans_full_resolution_and_runs_tiny_on_the_cpu(tmp_path
     assert len(list((wd / "data" / "samples" / "Vehicle" / "shard_0" / "velodyne").glob("*.bin"))) == 2
     scores = yaml.safe_load((wd / "data" / "labeler" / "semantickitti.val.json").read_text())
     assert scores["model"]["width"] == "W32" and 0.0 <= scores["sets"]["val"]["miou"] <= 1.0
+
+
+def test_every_result_target_plans_from_an_empty_working_directory(tmp_path):
+    """The way snakedeploy and the Snakemake catalog run a workflow: --snakefile from elsewhere.
+    Shipped files (config, schemas, detector yamls) are found relative to the workflow."""
+    rules_text = "".join(p.read_text() for p in sorted((ROOT / "rules").glob("*.smk")))
+    targets = sorted({t.replace("{pct}", "1").replace("{platform}", "drone")
+                      for t in re.findall(r'^ *json="(results/[^"]*\.json)",$', rules_text, re.M)})
+    assert len(targets) > 10
+    empty = tmp_path / "elsewhere"
+    empty.mkdir()
+    out = subprocess.run([sys.executable, "-m", "snakemake", "-n", "-j4", "--snakefile", str(ROOT / "Snakefile"),
+                          "--directory", str(empty), "all", *targets, "--quiet", "rules"],
+                         cwd=empty, capture_output=True, text=True)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "train_detector_real" in out.stdout + out.stderr
+    assert sorted(p.name for p in empty.iterdir()) == [".snakemake"]

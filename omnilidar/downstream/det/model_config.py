@@ -18,6 +18,7 @@ import yaml
 
 from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.data_config import PlatformConfig, anchor_generator_config
+from omnilidar.config import workflow_file
 from omnilidar.errors import InputError
 
 DETECTORS = ("voxel_rcnn", "pv_rcnn")
@@ -26,7 +27,7 @@ DETECTORS = ("voxel_rcnn", "pv_rcnn")
 def read_model_yaml(path: str | Path, section: str = "MODEL") -> dict:
     """The ``MODEL`` section of an OpenPCDet-style yaml (or the whole file when it has none),
     or another top-level ``section`` of it (an overrides preset such as ``CPU_SMALL``)."""
-    path = Path(path)
+    path = workflow_file(path)
     if not path.is_file():
         raise InputError(path, "detector config not found (downstream.det.detectors.<name>.config)")
     try:
