@@ -259,3 +259,31 @@ def test_score_det_command_on_pi3det_infos(tmp_path, capsys):
                                              tuple(a["location"][0]), a["rotation_y"][0], 0.7)])
     assert main(["score-det", "--predictions", str(preds), "--infos", str(path)]) == 0
     assert "3d   AP:9.0909, 9.0909, 9.0909" in capsys.readouterr().out
+
+
+def test_printout_reads_back_with_openpcdets_layout():
+    """A parser written for OpenPCDet's eval.py printout reads ours: per class and overlap set a
+    `Car AP@...:` block then a `Car AP_R40@...:` block, bbox/bev/3d with 4 decimals, aos with 2."""
+    import re
+
+    frames = [cars(5, 5 * f) for f in range(10)]
+    dets = [anno(b, scores=np.linspace(0.9, 0.5, 5)) for b in frames]
+    for d in dets[::2]:
+        d["location"] = d["location"] + [0.3, 0.0, 0.4]  # some boxes off: values differ between metrics
+    result = kitti_eval([anno(b) for b in frames], dets, ["Car"])
+    header = re.compile(r"^(\w+) (AP|AP_R40)@(\d\.\d\d), (\d\.\d\d), (\d\.\d\d):$")
+    value = {m: re.compile(rf"^{re.escape(label)}:(\d+\.\d{{{d}}}), (\d+\.\d{{{d}}}), (\d+\.\d{{{d}}})$")
+             for m, label, d in (("bbox", "bbox AP", 4), ("bev", "bev  AP", 4), ("3d", "3d   AP", 4), ("aos", "aos  AP", 2))}
+    lines = result["result_str"].splitlines()
+    assert len(lines) == 2 * 2 * 5  # 2 overlap sets x (R11, R40) x (header + 4 metrics)
+    for block in range(4):
+        head = header.match(lines[5 * block])
+        assert head and head.group(1) == "Car" and head.group(2) == ("AP" if block % 2 == 0 else "AP_R40"), lines[5 * block]
+        s, rule = block // 2, ("R11", "R40")[block % 2]
+        assert float(head.group(5)) == result["min_overlaps"]["Car"]["3d"][s]
+        for k, metric in enumerate(("bbox", "bev", "3d", "aos")):
+            m = value[metric].match(lines[5 * block + 1 + k])
+            assert m, lines[5 * block + 1 + k]
+            digits = 2 if metric == "aos" else 4
+            for diff, text in zip(("easy", "moderate", "hard"), m.groups()):
+                assert text == f"{ap(result, rule, 'Car', metric, s, diff):.{digits}f}"

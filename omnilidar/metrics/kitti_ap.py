@@ -386,18 +386,21 @@ def _official_dict(result: dict, names: list[str]) -> dict:
 
 
 def result_string(result: dict, names: list[str]) -> str:
-    """The AP table in the layout of OpenPCDet's printout (easy, moderate, hard per line)."""
+    """The AP table exactly in the layout of OpenPCDet's printout: per class and overlap set an
+    R11 block (``Car AP@...:``) then an R40 block (``Car AP_R40@...:``), one line per metric with
+    easy, moderate, hard (4 decimals; aos 2)."""
     lines = []
     for name in names:
+        ov = result["min_overlaps"][name]
         for s in range(2):
-            ov = result["min_overlaps"][name]
-            lines.append(f"{name} AP@{ov['bbox'][s]:.2f}, {ov['bev'][s]:.2f}, {ov['3d'][s]:.2f}:")
-            for rule in ("R11", "R40"):
-                suffix = "" if rule == "R11" else "_R40"
-                for metric, label in (("bbox", "bbox AP"), ("bev", "bev  AP"), ("3d", "3d   AP"), ("aos", "aos  AP")):
+            overlaps = f"{ov['bbox'][s]:.2f}, {ov['bev'][s]:.2f}, {ov['3d'][s]:.2f}"
+            for rule, header in (("R11", "AP"), ("R40", "AP_R40")):
+                lines.append(f"{name} {header}@{overlaps}:")
+                for metric, label, digits in (("bbox", "bbox AP", 4), ("bev", "bev  AP", 4), ("3d", "3d   AP", 4),
+                                              ("aos", "aos  AP", 2)):
                     if metric in result[rule][name]:
                         v = result[rule][name][metric][s]
-                        lines.append(f"{label}{suffix}:{v['easy']:.4f}, {v['moderate']:.4f}, {v['hard']:.4f}")
+                        lines.append(f"{label}:" + ", ".join(f"{v[d]:.{digits}f}" for d in DIFFICULTIES))
     return "\n".join(lines) + "\n"
 
 
