@@ -91,3 +91,21 @@ def test_missing_or_short_predictions_are_one_clear_error(tmp_path, capsys):
                  "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "pred/000000.label: has 3 labels but its scan has 2 points" in err and not out.exists()
+
+
+def test_accuracy_convention_of_semantic_kitti_api_leaves_predictions_of_0_out(tmp_path, capsys):
+    truth = np.array([10, 10, 252, 252, 40, 40, 40, 40, 0, 0])
+    pred = np.array([252, 10, 10, 40, 40, 60, 40, 0, 10, 40])  # one labelled point predicted 0
+    _write(tmp_path / "gt" / "000007.label", truth)
+    _write(tmp_path / "pred" / "000007.label", pred)
+    ours = _score(capsys, tmp_path / "gt", tmp_path / "pred")
+    api = _score(capsys, tmp_path / "gt", tmp_path / "pred", "--accuracy-convention", "semantic-kitti-api")
+    # 8 labelled points, 6 correct; the API's denominator drops the one predicted 0.
+    assert ours["accuracy"] == pytest.approx(6 / 8) and ours["accuracy_convention"] == "labelled"
+    assert api["accuracy"] == pytest.approx(6 / 7) and api["accuracy_convention"] == "semantic-kitti-api"
+    assert api["iou"] == ours["iou"]
+    # Without predictions of 0 the conventions agree.
+    _write(tmp_path / "pred" / "000007.label", np.where(pred == 0, 40, pred))
+    a = _score(capsys, tmp_path / "gt", tmp_path / "pred")
+    b = _score(capsys, tmp_path / "gt", tmp_path / "pred", "--accuracy-convention", "semantic-kitti-api")
+    assert a["accuracy"] == b["accuracy"] == pytest.approx(7 / 8)

@@ -12,8 +12,9 @@ Conventions (REFERENCE section 7):
 - ``miou_nanmean`` (mmdet3d): mean over classes with tp + fp + fn > 0 only.
   The two differ on sets that lack some classes; results report both.
 - accuracy: correct / labelled points (a prediction of 0 counts as wrong;
-  semantic-kitti-api leaves such points out of its accuracy denominator; our
-  models never predict 0, so the two agree for them).
+  semantic-kitti-api leaves such points out of its accuracy denominator, which
+  :func:`accuracy_from_confusion` offers for external predictions; our models
+  never predict 0, so the two agree for them).
 """
 
 from __future__ import annotations
@@ -86,8 +87,7 @@ def scores_from_confusion(confusion: np.ndarray, ignore: int = 0) -> Segmentatio
     conf = np.asarray(confusion, np.float64).copy()
     if conf.ndim != 2 or conf.shape[0] != conf.shape[1]:
         raise ValueError(f"confusion must be square, got {conf.shape}")
-    labelled = conf.sum() - conf[ignore].sum()
-    correct = np.trace(conf) - conf[ignore, ignore]
+    accuracy = accuracy_from_confusion(confusion, "labelled", ignore)
     conf[ignore, :] = 0
     conf[:, ignore] = 0
     tp = np.diag(conf)
@@ -102,5 +102,21 @@ def scores_from_confusion(confusion: np.ndarray, ignore: int = 0) -> Segmentatio
     present = union > 0
     miou = float(iou.mean())
     miou_nan = float(iou[present].mean()) if present.any() else 0.0
-    accuracy = float(correct / labelled) if labelled > 0 else 0.0
     return SegmentationScores(iou, miou, miou_nan, accuracy, present)
+
+
+ACCURACY_CONVENTIONS = ("labelled", "semantic-kitti-api")
+
+
+def accuracy_from_confusion(confusion: np.ndarray, convention: str = "labelled", ignore: int = 0) -> float:
+    """Point accuracy: ``labelled`` = correct / labelled points (a prediction of the ignore id is
+    wrong); ``semantic-kitti-api`` = correct / labelled points predicted as a class, as its
+    ``getacc`` (points predicted as the ignore id leave the denominator)."""
+    if convention not in ACCURACY_CONVENTIONS:
+        raise ValueError(f"accuracy convention {convention!r}; known: {', '.join(ACCURACY_CONVENTIONS)}")
+    conf = np.asarray(confusion, np.float64)
+    labelled = conf.sum() - conf[ignore].sum()
+    correct = np.trace(conf) - conf[ignore, ignore]
+    if convention == "semantic-kitti-api":
+        labelled -= conf[:, ignore].sum() - conf[ignore, ignore]
+    return float(correct / labelled) if labelled > 0 else 0.0

@@ -58,10 +58,11 @@ def pair_files(labels: str | Path, predictions: str | Path, sequences: list[str]
     return pairs
 
 
-def score_files(pairs: list[tuple[Path, Path]]) -> dict:
-    """Scores of all pairs together, with the class names and counts."""
+def score_files(pairs: list[tuple[Path, Path]], accuracy_convention: str = "labelled") -> dict:
+    """Scores of all pairs together, with the class names and counts; ``accuracy`` in the given
+    convention (:func:`omnilidar.metrics.segmentation.accuracy_from_confusion`)."""
     from omnilidar.io import semantickitti
-    from omnilidar.metrics.segmentation import ConfusionMatrix
+    from omnilidar.metrics.segmentation import ConfusionMatrix, accuracy_from_confusion
 
     confusion = ConfusionMatrix(semantickitti.NUM_CLASSES)
     unknown = 0
@@ -75,5 +76,6 @@ def score_files(pairs: list[tuple[Path, Path]]) -> dict:
         confusion.update(semantickitti.to_train_ids(truth), semantickitti.to_train_ids(pred), pred_path)
         points += len(truth)
     result = confusion.result().as_dict(list(semantickitti.CLASS_NAMES))
-    return {**result, "files": len(pairs), "points": points, "unknown_prediction_ids": unknown,
+    result["accuracy"] = accuracy_from_confusion(confusion.matrix, accuracy_convention)
+    return {**result, "accuracy_convention": accuracy_convention, "files": len(pairs), "points": points, "unknown_prediction_ids": unknown,
             "convention": "semantic-kitti-api evaluate_semantics: label & 0xFFFF, learning map, 0 ignored"}
