@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from omnilidar.errors import InputError
+from omnilidar.rerun_reasons import flatten_settings
 
 _TAG = "__omnilidar_type__"
 _RUNNER_NUMBERS = itertools.count()
@@ -172,15 +173,6 @@ def job_provenance(command: str, settings: dict, seed: int, inputs: dict) -> dic
             "versions": package_versions()}
 
 
-def _flat(value, prefix: str = "") -> dict:
-    if isinstance(value, dict):
-        out = {}
-        for k, v in value.items():
-            out.update(_flat(v, f"{prefix}{k}."))
-        return out
-    return {prefix.rstrip("."): value}
-
-
 def provenance_differences(stored: dict | None, current: dict) -> list[str]:
     """Why a stored provenance does not match the current one (empty when it does)."""
     if not isinstance(stored, dict):
@@ -189,7 +181,7 @@ def provenance_differences(stored: dict | None, current: dict) -> list[str]:
     for key in ("command", "code", "seed"):
         if stored.get(key) != current[key]:
             why.append(f"{key} {stored.get(key)} -> {current[key]}")
-    old, new = _flat(stored.get("settings", {})), _flat(current["settings"])
+    old, new = flatten_settings(stored.get("settings", {})), flatten_settings(current["settings"])
     changed = sorted(k for k in old.keys() | new.keys() if old.get(k, "<unset>") != new.get(k, "<unset>"))
     if changed:
         more = f" and {len(changed) - 5} more" if len(changed) > 5 else ""

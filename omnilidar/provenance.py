@@ -238,11 +238,31 @@ def code_hash(*modules: str, exclude: tuple[str, ...] = ()) -> str:
     return h.hexdigest()[:16]
 
 
+def code_manifest(*modules: str, exclude: tuple[str, ...] = ()) -> dict[str, str]:
+    """What :func:`code_hash` covers, file by file: ``{path relative to the checkout: 12-digit
+    content hash}`` of every module (code without docstrings) and declared data file. Two
+    manifests name the files whose change moved a stage's code hash (``omnilidar why``)."""
+    root = PACKAGE_DIR.parent.resolve()
+    out, data = {}, set()
+    for f in module_closure(*modules, exclude=exclude):
+        parsed = _parsed(f)
+        out[str(f.relative_to(root))] = hashlib.sha256(parsed.code.encode()).hexdigest()[:12]
+        data.update(parsed.data_files)
+    for f in sorted(data):
+        out[str(f.relative_to(root))] = hashlib.sha256(_data_content(f)).hexdigest()[:12]
+    return out
+
+
+def command_modules(command: str) -> tuple[str, str]:
+    """The modules an ``omnilidar <command>`` starts from: the entry point and the command's module."""
+    return f"{PACKAGE}.cli", f"{PACKAGE}.commands.{command.replace('-', '_')}"
+
+
 def command_code_hash(command: str, exclude: tuple[str, ...] = ()) -> str:
     """Code hash of one ``omnilidar`` subcommand: the entry point (``omnilidar.cli``,
     which imports only the module of the command it runs) and
     ``omnilidar.commands.<name>``."""
-    return code_hash(f"{PACKAGE}.cli", f"{PACKAGE}.commands.{command.replace('-', '_')}", exclude=exclude)
+    return code_hash(*command_modules(command), exclude=exclude)
 
 
 def config_hash(section) -> str:

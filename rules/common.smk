@@ -8,7 +8,8 @@ from omnilidar.config import validate, workflow_file
 from omnilidar.data_source import describe as describe_sources, mixed as sources_mixed, record as data_source_record
 from omnilidar.errors import InputError
 from omnilidar.manifest import listing_digest
-from omnilidar.provenance import command_code_hash, package_versions
+from omnilidar.provenance import code_manifest, command_code_hash, command_modules, package_versions
+from omnilidar.rerun_reasons import record_code_manifest
 
 try:
     # Fills every default from workflow/schemas/ and rejects unknown keys.
@@ -59,6 +60,8 @@ def code(command, exclude=()):
     """Content hash of the package code an ``omnilidar <command>`` runs (with the package
     versions appended where rerun_on_version_change asks for them)."""
     digest = command_code_hash(command, exclude=exclude)
+    # The files behind the hash, so `omnilidar why` can name the ones that changed.
+    record_code_manifest(digest, code_manifest(*command_modules(command), exclude=exclude))
     if _versions_rerun(command):
         digest = f"{digest} {json.dumps(VERSIONS, sort_keys=True)}"
     return digest
