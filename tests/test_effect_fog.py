@@ -5,6 +5,7 @@ stated for real KITTI geometry are checked on the real scans."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -313,7 +314,8 @@ def test_property_sane_outputs(xyz, inten, alpha, beta, jitter, scale, seed):
     i = inten.draw(st.lists(st.floats(0, scale, width=32), min_size=n, max_size=n))
     pts = np.column_stack([np.asarray(xyz, np.float32), np.asarray(i, np.float32)])
     scan = Scan(pts, semantic=np.full(n, 9, np.uint16), intensity_scale=scale)
-    out, info = _run(scan, alpha, beta, seed=seed, jitter=jitter)
+    # Effects work in the sensor's intensity scale (one rule for all effects).
+    out, info = _run(scan, alpha, beta, seed=seed, jitter=jitter, sensor=dataclasses.replace(KITTI, intensity_scale=scale))
     _check_sane(scan, out, info, scale)
     assert np.all(out.semantic[info["weather"]] == WEATHER_RETURN_LABEL)
     assert np.all(out.semantic[~info["weather"]] == 9)

@@ -121,3 +121,21 @@ def test_a_units_calibration_recovers_rings_of_cropped_and_thinned_scans(kitti_r
     # Without the unit's calibration, a front crop falls back to the nominal table.
     front = np.abs(az) < 45
     assert (recover_rings(other[front], HDL64) == other_ref[front]).mean() < 0.5
+
+
+def test_a_partial_view_is_calibrated_with_a_warning_and_recorded(synthetic_sweep):
+    import warnings
+
+    from omnilidar.data.rings import RingRecoveryWarning, ring_recovery
+
+    sensor = PRESETS["kitti_hdl64e"]
+    pts = synthetic_sweep.points[np.random.default_rng(0).permutation(len(synthetic_sweep))]  # not in firing order
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        full, method = ring_recovery(pts, sensor)
+    assert method == "scan_calibration"
+    azimuth = np.degrees(np.arctan2(pts[:, 1], pts[:, 0]))
+    crop = pts[np.abs(azimuth) <= 45.0]  # a camera-view crop
+    with pytest.warns(RingRecoveryWarning, match="partial view"):
+        rings, method = ring_recovery(crop, sensor)
+    assert method == "scan_calibration_partial_view" and len(rings) == len(crop)

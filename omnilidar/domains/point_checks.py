@@ -34,3 +34,13 @@ def check_points(scan: Scan, scale: float, scale_owner: str, source: str | Path 
     if low < 0.0 or high > scale:
         raise InputError(source, f"{prefix}intensities span {low:g}..{high:g}, outside the {scale_owner} scale "
                                  f"0..{scale:g} (a file in another intensity unit?)")
+
+
+def effect_scale(scan: Scan, sensor, who: str) -> float:
+    """What every effect's ``apply`` does before it computes: the builder's check of the points
+    against the sensor's intensity scale, the one scale every effect works in. Returns it."""
+    scale = float(sensor.intensity_scale)
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(None, f"{who}: sensor {sensor.name!r} needs a positive intensity scale, got {scale}")
+    check_points(scan, scale, sensor.name, who=who)
+    return scale

@@ -32,6 +32,7 @@ from omnilidar.domains.effects.beam_reduction import (
 )
 from omnilidar.domains.effects.beam_reduction import accuracy_time_curve as _ring_curve
 from omnilidar.domains.effects.base import unchanged
+from omnilidar.domains.point_checks import effect_scale
 from omnilidar.errors import InputError
 
 NEEDS_GROUND = False
@@ -78,6 +79,7 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     count = int(round(f * sensor.num_beams))
     if count == 0 or len(scan) == 0:
         return (scan, {**unchanged(scan, True)[1], "dropped_beams": []}) if return_info else scan
+    effect_scale(scan, sensor, "beam_missing")
     dropped = np.sort(rng.choice(sensor.num_beams, size=count, replace=False))
     keep = np.ones(sensor.num_beams, bool)
     keep[dropped] = False

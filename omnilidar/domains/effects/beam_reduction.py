@@ -27,6 +27,7 @@ import numpy as np
 
 from omnilidar.data.rings import recover_rings, ring_recovery
 from omnilidar.domains.effects.base import unchanged
+from omnilidar.domains.point_checks import effect_scale
 from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Scan
 from omnilidar.lidar.sensors import SensorSpec
@@ -104,6 +105,7 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     calibrate = fidelity_calibrates(fidelity)
     if k == 1 or len(scan) == 0:
         return unchanged(scan, return_info)
+    effect_scale(scan, sensor, "beam_reduction")
     rings, method = scan_rings(scan, sensor, calibrate)
     keep = np.arange(sensor.num_beams) % k == 0
     return drop_rings(scan, rings, keep, return_info, method)

@@ -81,7 +81,7 @@ from pathlib import Path
 import numpy as np
 
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
-from omnilidar.domains.point_checks import check_points
+from omnilidar.domains.point_checks import effect_scale
 from omnilidar.errors import InputError
 from omnilidar.io.atomic import atomic_path
 from omnilidar.lidar.scan import Scan
@@ -356,9 +356,8 @@ def apply(
     n = len(scan)
     if alpha == 0.0 or n == 0:
         return unchanged(scan, return_info)
-    check_points(scan, scan.intensity_scale, "scan's", who="fog")
+    scale = effect_scale(scan, sensor, "fog")
     pts = scan.points
-    scale = float(scan.intensity_scale)
 
     xyz = pts[:, :3].astype(np.float64)
     r2 = np.einsum("ij,ij->i", xyz, xyz)

@@ -94,7 +94,7 @@ import numpy as np
 
 from omnilidar.domains.effects._mie import mie_efficiencies
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
-from omnilidar.domains.point_checks import check_points
+from omnilidar.domains.point_checks import effect_scale
 from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Scan
 from omnilidar.lidar.sensors import SensorSpec
@@ -421,10 +421,9 @@ def apply(
     n = len(scan)
     if rate == 0.0 or n == 0:
         return unchanged(scan, return_info)
-    check_points(scan, sensor.intensity_scale, sensor.name, who="rain")
+    scale = effect_scale(scan, sensor, "rain")
     pts = scan.points
 
-    scale = float(sensor.intensity_scale)
     xyz = pts[:, :3].astype(np.float64)
     rng_m = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
     inten = pts[:, 3].astype(np.float64)

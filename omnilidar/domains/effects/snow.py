@@ -85,7 +85,7 @@ import numpy as np
 from scipy.special import gammainc, gamma as gamma_fn
 
 from omnilidar.domains.effects.base import WEATHER_RETURN_LABEL, unchanged
-from omnilidar.domains.point_checks import check_points
+from omnilidar.domains.point_checks import effect_scale
 from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Scan
 from omnilidar.lidar.sensors import SensorSpec
@@ -413,7 +413,7 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     scale = float(sensor.intensity_scale)
     if not (theta > 0 and np.isfinite(theta) and scale > 0 and np.isfinite(scale)):
         raise InputError(None, f"snow: sensor {sensor.name!r} needs a positive beam divergence and intensity scale")
-    check_points(scan, sensor.intensity_scale, sensor.name, who="snow")
+    effect_scale(scan, sensor, "snow")
     pts = scan.points
 
     xyz = pts[:, :3].astype(np.float64)

@@ -75,6 +75,7 @@ import time
 import numpy as np
 
 from omnilidar.domains.effects.base import unchanged
+from omnilidar.domains.point_checks import effect_scale
 from omnilidar.errors import InputError
 from omnilidar.lidar.scan import Scan
 from omnilidar.lidar.sensors import SensorSpec
@@ -242,6 +243,7 @@ def apply(
     f = min(h_mm / depth_mm, 1.0)
     if f <= 0.0 or n == 0:
         return unchanged(scan, return_info)
+    scale = effect_scale(scan, sensor, "wet_ground")
     if ground is None:
         from omnilidar.domains.ground import estimate_ground
 
@@ -255,13 +257,12 @@ def apply(
     gp = scan.points[idx]
     xyz = gp[:, :3].astype(np.float64)
     r = np.sqrt(np.einsum("ij,ij->i", xyz, xyz))
-    usable = (r > R_MIN) & np.all(np.isfinite(gp), axis=1)
+    usable = r > R_MIN
     if not usable.all():
         idx, gp, xyz, r = idx[usable], gp[usable], xyz[usable], r[usable]
     if len(idx) == 0:
         return unchanged(scan, return_info)
 
-    scale = float(scan.intensity_scale) if scan.intensity_scale > 0 else 1.0
     d = r
     u = xyz / d[:, None]
     normal = _normal(xyz, sensor)
