@@ -4,6 +4,7 @@ files, and a page that disagrees with its files fails the check."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -45,6 +46,15 @@ def test_blocks_are_rewritten_from_their_result_files_and_checked(tmp_path):
         readme.render_page(page.read_text(), tmp_path, page)
 
 
-def test_readme_agrees_with_the_results_kept_in_docs():
-    """Every number README quotes in a results block is what docs/results/*.json holds."""
-    assert main(["docs", str(ROOT / "README.md"), "--results", str(ROOT / "docs" / "results"), "--check"]) == 0
+def test_readme_and_docs_agree_with_the_results_kept_in_docs():
+    """Every number README and docs/ quote in a results block is what docs/results/*.json holds."""
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    assert sum("<!-- results:" in p.read_text() for p in pages) >= 3
+    assert main(["docs", *map(str, pages), "--results", str(ROOT / "docs" / "results"), "--check"]) == 0
+
+
+def test_readme_is_a_front_door():
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) < 200
+    for link in set(re.findall(r"\]\((docs/[^)#]+)\)", text)):
+        assert (ROOT / link).is_file(), link

@@ -6,7 +6,7 @@ HELP = "rewrite the results blocks of README.md and docs/*.md from result JSON f
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("pages", nargs="*", default=["README.md"], help="pages holding results blocks")
+    parser.add_argument("pages", nargs="*", help="pages holding results blocks (default README.md and docs/*.md)")
     parser.add_argument("--results", default="docs/results",
                         help="folder of the result JSON files the pages quote (default docs/results, the "
                              "measured results kept with the repository; results/ for a fresh run)")
@@ -22,6 +22,7 @@ def run(args) -> int:
     from omnilidar.report.readme import render_page
 
     stale = []
+    args.pages = args.pages or ["README.md", *map(str, sorted(Path("docs").glob("*.md")))]
     for page in args.pages:
         path = Path(page)
         if not path.is_file():

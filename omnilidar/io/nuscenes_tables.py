@@ -16,7 +16,7 @@ v1.0-mini), read as literals from that file -- the installed devkit's, or one
 given by path -- never imported. Scenes in neither list (the test split) are
 skipped.
 
-Output (README "Datasets and formats"): ``<out>/<split>/samples/LIDAR_TOP/<name>.pcd.bin``
+Output (docs/datasets.md): ``<out>/<split>/samples/LIDAR_TOP/<name>.pcd.bin``
 and ``<out>/<split>/lidarseg/<name>_lidarseg.bin``, linked (absolute symlinks)
 or copied, written atomically.
 """

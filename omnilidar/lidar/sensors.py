@@ -95,7 +95,7 @@ def sensor_to_levelled(xyz: np.ndarray, pitch_deg: float) -> np.ndarray:
     return levelled_to_sensor(xyz, -pitch_deg)
 
 
-# Presets. Parameter choices (see README "Sensors"):
+# Presets. Parameter choices (see docs/datasets.md "Sensors"):
 #  - kitti_hdl64e: KITTI/SemanticKITTI car, HDL-64E at 1.73 m, ~0.17 deg azimuth
 #    step at 10 Hz (2083 firings/rev); range image 64x1024 over +3/-25 deg (R2DM).
 #  - nuscenes_hdl32e: HDL-32E at 1.84 m, +10.67..-30.67 deg in 1.33 deg steps,

@@ -100,7 +100,20 @@ def gda_budget(doc: dict) -> str:
     return "\n".join(lines)
 
 
-RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget}
+def run_cost(doc: dict) -> str:
+    """Wall time, jobs and disk of one measured run (benchmarks/run_cost.py)."""
+    minutes, seconds = divmod(round(doc["elapsed_seconds"]), 60)
+    disk = doc["disk_mb"]
+    lines = [f"`{doc['target']}` from a clean clone (commit {doc['commit']}): {minutes} min {seconds:02d} s, "
+             f"{doc['jobs']} jobs, on a 2-core CPU machine, install excluded.", "",
+             "| directory | disk (MB) |", "|---|---|"]
+    lines += [f"| `{d}/` | {mb:.1f} |" for d, mb in disk.items()]
+    lines.append(f"| total | {sum(disk.values()):.0f} |")
+    return "\n".join(lines)
+
+
+RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
+             "run_cost": run_cost}
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:

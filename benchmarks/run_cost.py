@@ -1,0 +1,65 @@
+"""What one workflow run cost: wall time, jobs and disk left behind, as a result file for the docs.
+
+    python benchmarks/run_cost.py --run-dir /path/to/clone --target results/semkitti_1pct.json \
+        --out docs/results/run_cost.json
+
+Reads the run's Snakemake logs (``.snakemake/log/*.snakemake.log``): the first log that built
+``--target`` gives the elapsed time from its first to its last timestamp and the jobs it finished.
+Disk use is measured per top-level directory the workflow writes (data, work, results, logs,
+benchmarks/out). ``omnilidar docs`` writes docs/troubleshooting.md's block from the file, so the
+numbers there come from a measured run, not from hand.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+from datetime import datetime
+from pathlib import Path
+
+STAMP = re.compile(r"^\[(\w{3} \w{3} +\d+ \d\d:\d\d:\d\d \d{4})\]$", re.M)
+OUTPUT_DIRS = ("data", "work", "results", "logs", "benchmarks/out")
+
+
+def log_that_built(run_dir: Path, target: str) -> Path:
+    for log in sorted((run_dir / ".snakemake" / "log").glob("*.snakemake.log")):
+        text = log.read_text()
+        if re.search(rf"output: .*{re.escape(target)}", text) and "Finished jobid" in text:
+            return log
+    raise SystemExit(f"{run_dir}: no Snakemake log built {target}")
+
+
+def elapsed(log: Path) -> tuple[float, int]:
+    text = log.read_text()
+    stamps = [datetime.strptime(s, "%a %b %d %H:%M:%S %Y") for s in STAMP.findall(text)]
+    return (stamps[-1] - stamps[0]).total_seconds(), text.count("Finished jobid")
+
+
+def disk_mb(path: Path) -> float:
+    if not path.exists():
+        return 0.0
+    out = subprocess.run(["du", "-sk", str(path)], capture_output=True, text=True, check=True).stdout
+    return round(int(out.split()[0]) / 1024, 1)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run-dir", type=Path, required=True, help="the clone the run happened in")
+    ap.add_argument("--target", default="results/semkitti_1pct.json")
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    log = log_that_built(args.run_dir, args.target)
+    seconds, jobs = elapsed(log)
+    commit = subprocess.run(["git", "-C", str(args.run_dir), "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip() or None
+    doc = {"experiment": "run_cost", "target": args.target, "commit": commit, "log": log.name,
+           "elapsed_seconds": seconds, "jobs": jobs,
+           "disk_mb": {d: disk_mb(args.run_dir / d) for d in OUTPUT_DIRS}}
+    args.out.write_text(json.dumps(doc, indent=2) + "\n")
+    print(json.dumps(doc, indent=2))
+
+
+if __name__ == "__main__":
+    main()
