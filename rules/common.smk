@@ -321,6 +321,17 @@ def _warn_mixed_data():
 _warn_mixed_data()
 
 
+def _warn_missing_roots():
+    """One line per configured dataset root that does not exist (its index job would fail)."""
+    for name, entry in sorted(config["datasets"].items()):
+        if entry["root"] is not None and not os.path.isdir(entry["root"]):
+            print(f"Warning: datasets.{name}.root {entry['root']} does not exist: every target that reads "
+                  f"{name} will fail at its index job (set the root, or null for the synthetic world)", file=sys.stderr)
+
+
+_warn_missing_roots()
+
+
 # Domains of a GDA run joined by '+' (only configured names, so gda-vehicle_seed1 is seed 1 of
 # gda-vehicle, never a domain called vehicle_seed1).
 _DOMAIN_ALTERNATIVES = f"(?:{'|'.join(DOMAIN_NAMES)})"

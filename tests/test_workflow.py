@@ -229,3 +229,14 @@ def test_every_result_target_plans_from_an_empty_working_directory(tmp_path):
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     assert "train_detector_real" in out.stdout + out.stderr
     assert sorted(p.name for p in empty.iterdir()) == [".snakemake"]
+
+
+def test_a_dataset_root_that_does_not_exist_is_warned_about_in_a_dry_run(workdir, tmp_path):
+    (tmp_path / "kitti").mkdir()
+    cfg = tmp_path / "roots.yaml"
+    cfg.write_text(yaml.safe_dump({"datasets": {"semantickitti": {"root": str(tmp_path / "kitti")},
+                                                "nuscenes": {"root": str(tmp_path / "no_such_dir")}}}))
+    out = snakemake(workdir, "--dry-run", "results/data_summary.json", "--configfile", str(cfg))
+    lines = [line for line in (out.stdout + out.stderr).splitlines() if "does not exist" in line]
+    assert lines == [f"Warning: datasets.nuscenes.root {tmp_path / 'no_such_dir'} does not exist: every target that "
+                     "reads nuscenes will fail at its index job (set the root, or null for the synthetic world)"]
