@@ -21,8 +21,12 @@ from workflow_helpers import ROOT, copy_workflow, snakemake
 
 SCRIPT = ROOT / "workflow" / "profiles" / "slurm" / "single-node.sh"
 TARGET = "results/semkitti_1pct.json"
-# The test configuration with a shorter labeler: both runs use it, so they still compare.
-FAST = "downstream: {labeler: {schedule: {iterations: 10}}}\n"
+GENERATOR = "data/generator/full/model.pt"
+SUBSET = "data/subsets/semantickitti_1pct.json"
+# The test configuration with tiny trainings (the students run the embedded default's 200
+# iterations otherwise): both runs use it, so they still compare.
+FAST = ("downstream: {voxel_size: 0.8, schedule: {iterations: 3, log_interval: 1, checkpoint_interval: 2},\n"
+        "             labeler: {voxel_size: 0.8, schedule: {iterations: 10, log_interval: 1}}}\n")
 VOLATILE = {"timings", "created", "seconds", "train_seconds"}
 
 _SBIN = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"])
@@ -40,16 +44,18 @@ class SingleNode:
 
     def __init__(self, path: Path, gpu: bool):
         self.path = path
-        cmd = ["bash", str(SCRIPT), "up", str(path)] + (["--gpu"] if gpu else [])
+        # Six job slots on the CI machine's cores: the tiny jobs mostly start up and wait.
+        cmd = ["bash", str(SCRIPT), "up", str(path), "--cpus", "6"] + (["--gpu"] if gpu else [])
         up = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, PATH=_SBIN))
         assert up.returncode == 0, up.stdout + up.stderr
         self.env = {"SLURM_CONF": str(path / "slurm.conf"), "PATH": _SBIN}
 
     def jobs(self) -> list[dict]:
-        """Every job the cluster ran (MinJobAge keeps them in squeue): rule, partition, GRES."""
-        out = subprocess.run(["squeue", "-t", "all", "-h", "-o", "%k|%P|%b|%T"], capture_output=True, text=True,
+        """Every job the cluster ran (MinJobAge keeps them in squeue): rule, partition, GPUs asked."""
+        out = subprocess.run(["squeue", "-t", "all", "-h", "-O", "Comment:|,Partition:|,tres-per-job:|,State:"],
+                             capture_output=True, text=True,
                              env=dict(os.environ, **self.env), check=True).stdout
-        rows = [line.split("|") for line in out.splitlines() if line.strip()]
+        rows = [[f.strip() for f in line.split("|")] for line in out.splitlines() if line.strip()]
         return [{"rule": c.removeprefix("rule_").split("_wildcards")[0], "partition": p, "gres": g, "state": s}
                 for c, p, g, s in rows]
 
@@ -57,6 +63,11 @@ class SingleNode:
         subprocess.run(["bash", str(SCRIPT), "down", str(self.path)], check=True)
         for pidfile in ("slurmctld.pid", "slurmd.pid", "munged.pid"):
             assert not (self.path / pidfile).exists()
+
+
+def _workflow_copy(path: Path) -> Path:
+    path.mkdir(parents=True)
+    return copy_workflow(path)
 
 
 def _cluster_overlay(path: Path, cluster: Path, gpus) -> Path:
@@ -85,40 +96,35 @@ def _profile_run(workdir: Path, cluster: SingleNode, overlay: Path, *targets: st
             os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
 
 
-def test_headline_target_through_the_profile_on_a_cpu_only_slurm_equals_the_local_run(tmp_path):
-    local = copy_workflow(tmp_path / "local")
+def test_headline_target_on_a_cpu_only_slurm_equals_the_local_run_and_gpu_rules_land_on_a_gres_node(tmp_path):
+    local = _workflow_copy(tmp_path / "local")
     (tmp_path / "fast.yaml").write_text(FAST)
     snakemake(local, "--configfile", "config/test.yaml", str(tmp_path / "fast.yaml"), "--", TARGET)
 
+    # CPU-only pass: resources.gpus false on a node without GPUs.
+    wd = _workflow_copy(tmp_path / "cluster")
     cluster = SingleNode(tmp_path / "slurm", gpu=False)
     try:
-        wd = copy_workflow(tmp_path / "cluster")
-        overlay = _cluster_overlay(tmp_path / "cpu_only.yaml", cluster.path, False)
-        _profile_run(wd, cluster, overlay, "--", TARGET)
+        _profile_run(wd, cluster, _cluster_overlay(tmp_path / "cpu_only.yaml", cluster.path, False), "--", TARGET)
         jobs = cluster.jobs()
     finally:
         cluster.down()
-
     assert len(jobs) >= 10 and {j["state"] for j in jobs} == {"COMPLETED"}, jobs
     assert {"train_generator", "train_labeler", "train_supervised", "train_gda"} <= {j["rule"] for j in jobs}
     assert {j["partition"] for j in jobs} == {"cpu"} and not any("gpu" in j["gres"] for j in jobs), jobs
     ours, theirs = (json.loads((d / TARGET).read_text()) for d in (wd, local))
     assert _stable(ours) == _stable(theirs)
 
-
-def test_gpu_rules_land_on_the_gpu_partition_of_a_gres_node(tmp_path):
-    cluster = SingleNode(tmp_path / "slurm", gpu=True)
+    # GRES pass: resources.gpus auto on a node that declares a GPU; the generator (device auto)
+    # retrains there and lands on the gpu partition with one GPU, a CPU rule stays on cpu.
+    cluster = SingleNode(tmp_path / "slurm_gpu", gpu=True)
     try:
-        wd = copy_workflow(tmp_path / "cluster")
-        overlay = _cluster_overlay(tmp_path / "auto.yaml", cluster.path, "auto")
-        # The prompts (text device cpu in the test config) and the domains on the CPU, the generator on the GPU node.
-        _profile_run(wd, cluster, overlay, "--", "data/generator/full/model.pt")
+        _profile_run(wd, cluster, _cluster_overlay(tmp_path / "auto.yaml", cluster.path, "auto"),
+                     "--forcerun", "train_generator", "make_subset", "--", GENERATOR, SUBSET)
         jobs = cluster.jobs()
     finally:
         cluster.down()
-    by_rule = {}
-    for j in jobs:
-        by_rule.setdefault(j["rule"], []).append(j)
     assert {j["state"] for j in jobs} == {"COMPLETED"}, jobs
-    assert [(j["partition"], j["gres"]) for j in by_rule["train_generator"]] == [("gpu", "gres:gpu:1")], jobs
-    assert all(j["partition"] == "cpu" for j in by_rule["build_domain"] + by_rule["synthesize"]), jobs
+    where = {j["rule"]: (j["partition"], j["gres"]) for j in jobs}
+    assert where["train_generator"] == ("gpu", "gres:gpu:1"), jobs
+    assert where["make_subset"] == ("cpu", "N/A"), jobs

@@ -8,13 +8,36 @@ so whoever consumes it can digest it cheaply.
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import shutil
+import socket
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from omnilidar.manifest import write_manifest
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: Path) -> None:
+    """Remove what a killed earlier write of ``path`` on this host left (its writer is gone)."""
+    mark = f".{path.name}.{socket.gethostname()}-"
+    for old in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        if not old.name.startswith(mark):
+            continue
+        pid = old.name[len(mark):].split(".", 1)[0]
+        if pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(old, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -23,11 +46,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
     Works for files and for directories (the caller creates whichever it needs at
     the yielded path; a directory gets ``MANIFEST.sha256``). On any exception the temporary is removed and ``path`` is
-    left untouched.
+    left untouched; what a killed process left (SIGKILL runs no cleanup) is removed by the next write of ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    remove_stale_temporaries(path)
+    # Host and process in the name: a rerun on this host knows which leftovers are dead.
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.{socket.gethostname()}-{os.getpid()}.", suffix=".tmp",
+                                dir=path.parent))
     target = tmp / path.name
     try:
         yield target
