@@ -219,8 +219,11 @@ def _partition_limits():
 
 PARTITION_LIMITS = _partition_limits()
 
-# The SLURM profile's account until the user sets one (workflow/profiles/slurm/config.yaml).
+# The SLURM profile's account until the user sets one (workflow/profiles/slurm/config.yaml), and
+# sbatch's own variable that sets it instead. Optional, so not an `envvars:` entry (that would
+# require it on every machine); only the submitting Snakemake reads it.
 ACCOUNT_PLACEHOLDER = "CHANGE_ME"
+ACCOUNT_VARIABLE = "SBATCH_ACCOUNT"
 
 
 def cluster_has_accounting():
@@ -239,7 +242,7 @@ def _check_account():
     defaults = workflow.resource_settings.default_resources
     account = defaults.get("slurm_account") if defaults is not None else None
     if (account is not None and str(account.raw).strip("'\"") == ACCOUNT_PLACEHOLDER
-            and not os.environ.get("SBATCH_ACCOUNT") and cluster_has_accounting()):
+            and not os.environ.get(ACCOUNT_VARIABLE) and cluster_has_accounting()):
         sys.exit(f"The SLURM account is the profile's placeholder {ACCOUNT_PLACEHOLDER}: export SBATCH_ACCOUNT=<account>, "
                  "pass --default-resources slurm_account=<account>, or set it in workflow/profiles/slurm/config.yaml")
 
@@ -274,13 +277,13 @@ def check_partition_fit(rule, partition, mem_mb, cpus, gpus, minutes):
     where = f"resources.partition_config {RESOURCES['partition_config']}"
     limits = PARTITION_LIMITS.get(partition)
     if limits is None:
-        raise PartitionLimitExceeded(f"rule {rule}: partition {partition} is not in {where}")
+        raise PartitionLimitExceeded(f"Rule {rule} asks for partition {partition}, which is not in {where}")
     asks = [("mem_mb", mem_mb, limits.max_mem_mb, "MB of memory"), ("cpus_per_task", cpus, limits.max_cpus_per_task, "CPUs"),
             ("gpu", gpus, limits.max_gpu, "GPUs"), ("runtime", minutes, limits.max_runtime, "minutes")]
     for key, asked, limit, unit in asks:
         if asked > limit:
             raise PartitionLimitExceeded(
-                f"rule {rule} asks {asked} {unit} ({key}) but partition {partition} allows {limit:g} ({where}); "
+                f"Rule {rule} asks {asked} {unit} ({key}) but partition {partition} allows {limit:g} ({where}); "
                 f"lower the work in the config, raise the limit there, or set {_REMEDY[key](rule)}")
 
 
@@ -310,8 +313,8 @@ def job_resources(rule):
         return mem_mb
 
     out = {"mem_mb": checked_mem_mb, "runtime": runtime, "cpus_per_task": cpus, "slurm_partition": partition}
-    if os.environ.get("SBATCH_ACCOUNT"):  # sbatch's own variable; the plugin would pass the profile's -A over it
-        out["slurm_account"] = os.environ["SBATCH_ACCOUNT"]
+    if os.environ.get(ACCOUNT_VARIABLE):  # the plugin would pass the profile's -A over sbatch's variable
+        out["slurm_account"] = os.environ[ACCOUNT_VARIABLE]
     if gpus:
         out["gpu"] = gpus
     return out

@@ -164,7 +164,7 @@ def test_memory_follows_the_work_and_a_job_over_its_partition_limit_is_refused(w
                     "--configfile", "config/test.yaml", str(limits), *target, check=False)
     text = out.stdout + out.stderr
     assert out.returncode != 0
-    assert re.search(r"PartitionLimitExceeded: rule \w+ asks \d+ MB of memory \(mem_mb\) but partition \w+ allows 1000", text)
+    assert re.search(r"PartitionLimitExceeded: Rule \w+ asks \d+ MB of memory \(mem_mb\) but partition \w+ allows 1000", text)
     assert not (workdir / "data" / "generator" / "full" / "model.pt").exists()
 
 

@@ -24,9 +24,11 @@ TARGET = "results/semkitti_1pct.json"
 GENERATOR = "data/generator/full/model.pt"
 SUBSET = "data/subsets/semantickitti_1pct.json"
 # The test configuration with tiny trainings (the students run the embedded default's 200
-# iterations otherwise): both runs use it, so they still compare.
+# iterations otherwise) and one seed per backbone, so that the ~33 jobs go through SLURM in a few
+# minutes: both runs use it, so they still compare.
 FAST = ("downstream: {voxel_size: 0.8, schedule: {iterations: 3, log_interval: 1, checkpoint_interval: 2},\n"
-        "             labeler: {voxel_size: 0.8, schedule: {iterations: 10, log_interval: 1}}}\n")
+        "             labeler: {voxel_size: 0.8, schedule: {iterations: 10, log_interval: 1}},\n"
+        "             experiments: {semkitti: {seeds: 1}}}\n")
 VOLATILE = {"timings", "created", "seconds", "train_seconds"}
 
 _SBIN = os.pathsep.join([os.environ.get("PATH", ""), "/usr/sbin", "/sbin"])
