@@ -99,7 +99,7 @@ if [ $gpu = 1 ]; then
 fi
 cat > "$dir/slurm.conf" <<EOF
 ClusterName=omnilidar
-SlurmctldHost=$host
+SlurmctldHost=$host(127.0.0.1)
 SlurmctldPort=$ctld_port
 SlurmdPort=$node_port
 AuthType=auth/munge
@@ -126,7 +126,7 @@ ReturnToService=2
 MinJobAge=3600
 $( [ $gpu = 1 ] && echo "GresTypes=gpu" )
 $overrides
-NodeName=$host CPUs=$cpus RealMemory=$mem_mb $gres State=UNKNOWN
+NodeName=$host NodeAddr=127.0.0.1 CPUs=$cpus RealMemory=$mem_mb $gres State=UNKNOWN
 PartitionName=cpu Nodes=$host Default=YES MaxTime=INFINITE State=UP
 PartitionName=gpu Nodes=$host MaxTime=INFINITE State=UP
 EOF
