@@ -221,18 +221,27 @@ def _canonical(name: str, raw: bytes) -> bytes:
     return json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str).encode()
 
 
+def _covered(*modules: str, exclude: tuple[str, ...] = ()) -> tuple[list[tuple[Path, str]], list[Path]]:
+    """What a stage's code hash covers: (module file, its code without docstrings) in closure
+    order, and the data files those modules declare, sorted."""
+    code, data = [], set()
+    for f in module_closure(*modules, exclude=exclude):
+        parsed = _parsed(f)
+        code.append((f, parsed.code))
+        data.update(parsed.data_files)
+    return code, sorted(data)
+
+
 def code_hash(*modules: str, exclude: tuple[str, ...] = ()) -> str:
     """Content hash (16 hex digits) of the code the given modules run and the data
     files they declare."""
     h = hashlib.sha256()
-    data: set[Path] = set()
-    for f in module_closure(*modules, exclude=exclude):
+    code, data = _covered(*modules, exclude=exclude)
+    for f, text in code:
         h.update(str(f.relative_to(PACKAGE_DIR)).encode())
-        parsed = _parsed(f)
-        h.update(parsed.code.encode())
-        data.update(parsed.data_files)
+        h.update(text.encode())
     root = PACKAGE_DIR.parent.resolve()
-    for f in sorted(data):
+    for f in data:
         h.update(b"\0data:" + str(f.relative_to(root)).encode() + b"\0")
         h.update(_data_content(f))
     return h.hexdigest()[:16]
@@ -243,13 +252,9 @@ def code_manifest(*modules: str, exclude: tuple[str, ...] = ()) -> dict[str, str
     content hash}`` of every module (code without docstrings) and declared data file. Two
     manifests name the files whose change moved a stage's code hash (``omnilidar why``)."""
     root = PACKAGE_DIR.parent.resolve()
-    out, data = {}, set()
-    for f in module_closure(*modules, exclude=exclude):
-        parsed = _parsed(f)
-        out[str(f.relative_to(root))] = hashlib.sha256(parsed.code.encode()).hexdigest()[:12]
-        data.update(parsed.data_files)
-    for f in sorted(data):
-        out[str(f.relative_to(root))] = hashlib.sha256(_data_content(f)).hexdigest()[:12]
+    code, data = _covered(*modules, exclude=exclude)
+    out = {str(f.relative_to(root)): hashlib.sha256(text.encode()).hexdigest()[:12] for f, text in code}
+    out.update({str(f.relative_to(root)): hashlib.sha256(_data_content(f)).hexdigest()[:12] for f in data})
     return out
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 import re
 from pathlib import Path
 
@@ -27,7 +28,7 @@ def record_code_manifest(digest: str, manifest: dict, workdir: Path = Path("."))
         return
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{id(manifest)}.tmp")
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")  # cluster jobs parse the workflow at the same time
         tmp.write_text(json.dumps(manifest, sort_keys=True))
         tmp.replace(path)
     except OSError:

@@ -64,11 +64,11 @@ def _downstream_workers(*keys):
 
 
 class Work:
-    """Host memory of a job in MB beyond the interpreter: ``data_mb`` always, ``cpu_mb`` (the
-    activations) only when it computes on the CPU; a GPU job holds those on the device."""
+    """A job's activations in MB when it computes on the CPU (a GPU job holds them on the device);
+    a plain number in _RULES is a fixed request instead."""
 
-    def __init__(self, cpu_mb, data_mb=0):
-        self.cpu_mb, self.data_mb = cpu_mb, data_mb
+    def __init__(self, cpu_mb):
+        self.cpu_mb = cpu_mb
 
 
 # Peak resident memory measured on the embedded default (snakemake benchmark files, CPU):
@@ -262,8 +262,8 @@ def cluster_gpus():
     return gpu is not None and gpu.max_gpu > 0
 
 
-_REMEDY = {"mem_mb": lambda r: f"resources.mem_mb: {{{r}: MB}}", "runtime": lambda r: f"resources.runtime: {{{r}: minutes}}",
-           "gpu": lambda r: "resources.gpus: false (no GPU anywhere)", "cpus_per_task": lambda r: "fewer num_workers"}
+_REMEDY = {"mem_mb": "resources.mem_mb: {{{rule}: MB}}", "runtime": "resources.runtime: {{{rule}: minutes}}",
+           "gpu": "resources.gpus: false (no GPU anywhere)", "cpus_per_task": "fewer num_workers"}
 
 
 class PartitionLimitExceeded(Exception):
@@ -284,7 +284,7 @@ def check_partition_fit(rule, partition, mem_mb, cpus, gpus, minutes):
         if asked > limit:
             raise PartitionLimitExceeded(
                 f"Rule {rule} asks {asked} {unit} ({key}) but partition {partition} allows {limit:g} ({where}); "
-                f"lower the work in the config, raise the limit there, or set {_REMEDY[key](rule)}")
+                f"lower the work in the config, raise the limit there, or set {_REMEDY[key].format(rule=rule)}")
 
 
 def _mem_mb(work, gpus, cpus):
@@ -292,7 +292,7 @@ def _mem_mb(work, gpus, cpus):
     if not isinstance(work, Work):
         return work
     workers = max(0, cpus - 1)
-    mb = BASE_MB + workers * WORKER_MB + work.data_mb + (0 if gpus else work.cpu_mb)
+    mb = BASE_MB + workers * WORKER_MB + (0 if gpus else work.cpu_mb)
     return int(math.ceil(RESOURCES["mem_margin"] * mb))
 
 

@@ -410,10 +410,9 @@ def apply(scan: Scan, params: dict, sensor: SensorSpec, rng: np.random.Generator
     if p["snowfall_rate"] == 0.0 or len(scan) == 0:
         return unchanged(scan, return_info)
     theta = sensor.beam_divergence_mrad * 1e-3
-    scale = float(sensor.intensity_scale)
-    if not (theta > 0 and np.isfinite(theta) and scale > 0 and np.isfinite(scale)):
-        raise InputError(None, f"snow: sensor {sensor.name!r} needs a positive beam divergence and intensity scale")
-    effect_scale(scan, sensor, "snow")
+    if not (theta > 0 and np.isfinite(theta)):
+        raise InputError(None, f"snow: sensor {sensor.name!r} needs a positive beam divergence")
+    scale = effect_scale(scan, sensor, "snow")
     pts = scan.points
 
     xyz = pts[:, :3].astype(np.float64)
