@@ -25,6 +25,7 @@ from referencing import Registry, Resource
 from referencing.jsonschema import DRAFT202012
 
 from omnilidar.errors import InputError
+from omnilidar.yaml_load import load_yaml
 
 WORKFLOW_ROOT = Path(__file__).resolve().parents[1]
 SCHEMA_DIR = WORKFLOW_ROOT / "workflow" / "schemas"
@@ -43,7 +44,7 @@ def _load_schema(name: str) -> dict:
     path = SCHEMA_DIR / name
     if not path.exists():
         raise InputError(path, "schema file not found (is the package installed from a checkout?)")
-    return yaml.safe_load(path.read_text())
+    return load_yaml(path.read_text())
 
 
 def _without_dialect(schema: dict) -> dict:
@@ -99,7 +100,7 @@ def load_config(path: str | Path) -> dict:
     if not path.exists():
         raise InputError(path, "config file not found")
     try:
-        config = yaml.safe_load(path.read_text()) or {}
+        config = load_yaml(path.read_text()) or {}
     except yaml.YAMLError as err:
         raise InputError(path, f"invalid YAML: {err}") from None
     return validate(config, source=path)

@@ -1,6 +1,6 @@
 """Provenance: per-stage code hashes, config hashes and the results envelope.
 
-Stdlib only: the Snakefile imports this module at parse time, and every cluster
+Stdlib and PyYAML only: the Snakefile imports this module at parse time, and every cluster
 job re-parses the Snakefile.
 
 A stage's code hash covers exactly the code its command runs: the ``omnilidar``
@@ -34,12 +34,16 @@ from __future__ import annotations
 import ast
 import hashlib
 import json
+import os
 import platform
 import re
+import sys
 import time
 from functools import cache
 from pathlib import Path
 from typing import NamedTuple
+
+from omnilidar.yaml_load import load_yaml
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 PACKAGE = PACKAGE_DIR.name
@@ -92,8 +96,20 @@ def _declared(tree: ast.Module, name: str, path: Path) -> tuple[str, ...]:
     return ()
 
 
-def _imports(path: Path, tree: ast.AST, dispatches: tuple[str, ...] = ()) -> tuple[set[Path], set[Path]]:
-    """Package files imported anywhere in a module (plus parent packages' __init__),
+def _import_records(tree: ast.AST) -> list[tuple[int, str, list[str]]]:
+    """Every import statement of a module, anywhere in it: (relative level, module, names);
+    ``import a.b`` reads (0, "", ["a.b"])."""
+    records = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            records.append((0, "", [alias.name for alias in node.names]))
+        elif isinstance(node, ast.ImportFrom):
+            records.append((node.level, node.module or "", [alias.name for alias in node.names]))
+    return records
+
+
+def _resolve_imports(path: Path, records, dispatches: tuple[str, ...] = ()) -> tuple[set[Path], set[Path]]:
+    """Package files that a module's import records reach (plus parent packages' __init__),
     split into ordinary imports and registry imports of modules in ``dispatches``."""
     own = _dotted_name(path)
     is_pkg = path.name == "__init__.py"
@@ -109,23 +125,69 @@ def _imports(path: Path, tree: ast.AST, dispatches: tuple[str, ...] = ()) -> tup
                 registry = any(prefix.startswith(pkg + ".") for pkg in dispatches)
                 (dispatched if registry else found).add(f)
 
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            for alias in node.names:
-                add(alias.name)
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                anchor = own.split(".")
-                anchor = anchor if is_pkg else anchor[:-1]
-                anchor = anchor[: len(anchor) - (node.level - 1)]
-                base = ".".join(anchor + ([node.module] if node.module else []))
-            else:
-                base = node.module or ""
-            add(base)
-            for alias in node.names:  # ``from pkg import module``
-                add(f"{base}.{alias.name}")
+    for level, module, names in records:
+        if not level and not module:  # ``import a.b``
+            for name in names:
+                add(name)
+            continue
+        if level:
+            anchor = own.split(".")
+            anchor = anchor if is_pkg else anchor[:-1]
+            anchor = anchor[: len(anchor) - (level - 1)]
+            base = ".".join(anchor + ([module] if module else []))
+        else:
+            base = module
+        add(base)
+        for name in names:  # ``from pkg import module``
+            add(f"{base}.{name}")
     found.discard(path)
     return found, dispatched - found - {path}
+
+
+def _imports(path: Path, tree: ast.AST, dispatches: tuple[str, ...] = ()) -> tuple[set[Path], set[Path]]:
+    """Package files imported anywhere in a module (plus parent packages' __init__),
+    split into ordinary imports and registry imports of modules in ``dispatches``."""
+    return _resolve_imports(path, _import_records(tree), dispatches)
+
+
+class _SourceFacts(NamedTuple):
+    """What the code hash reads from one module's source, and nothing of where it lies."""
+    code: str  # AST dump without docstrings
+    imports: list  # _import_records
+    dispatches: list  # DISPATCHES
+    data_files: list  # DATA_FILES, as declared
+
+
+# Parsing the package's ~200 modules costs about a second of every Snakemake start (and every
+# cluster job re-parses the Snakefile), so the facts are kept on disk, named by the source's
+# content and the Python version (whose AST they are): the same bytes always give the same facts,
+# so an entry can never be stale. Where the cache cannot be written, nothing is cached.
+_FACTS_FORMAT = 1
+
+
+def _facts_cache_dir() -> Path:
+    base = os.environ.get("OMNILIDAR_CACHE_DIR") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "omnilidar"
+    return Path(base) / f"ast-py{sys.version_info[0]}.{sys.version_info[1]}-v{_FACTS_FORMAT}"
+
+
+def _source_facts(path: Path, source: str) -> _SourceFacts:
+    entry = _facts_cache_dir() / (hashlib.sha256(source.encode()).hexdigest() + ".json")
+    try:
+        return _SourceFacts(*json.loads(entry.read_text()))
+    except (OSError, ValueError, TypeError):
+        pass
+    tree = ast.parse(source, filename=str(path))
+    imports = _import_records(tree)
+    dispatches, data_files = (list(_declared(tree, name, path)) for name in ("DISPATCHES", "DATA_FILES"))
+    facts = _SourceFacts(ast.dump(_strip_docstrings(tree)), imports, dispatches, data_files)
+    try:
+        entry.parent.mkdir(parents=True, exist_ok=True)
+        tmp = entry.with_name(f"{entry.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(list(facts)))
+        os.replace(tmp, entry)
+    except OSError:
+        pass
+    return facts
 
 
 class _Parsed(NamedTuple):
@@ -137,16 +199,16 @@ class _Parsed(NamedTuple):
 
 @cache
 def _parsed(path: Path) -> _Parsed:
-    tree = ast.parse(path.read_text(), filename=str(path))
-    imports, dispatched = _imports(path, tree, _declared(tree, "DISPATCHES", path))
+    facts = _source_facts(path, path.read_text())
+    imports, dispatched = _resolve_imports(path, facts.imports, tuple(facts.dispatches))
     root = PACKAGE_DIR.parent
     data = []
-    for rel in _declared(tree, "DATA_FILES", path):
+    for rel in facts.data_files:
         f = (root / rel).resolve()
         if not f.is_file() or not f.is_relative_to(root.resolve()):
             raise ValueError(f"{path}: DATA_FILES names {rel!r}, which is not a file under {root}")
         data.append(f)
-    return _Parsed(ast.dump(_strip_docstrings(tree)), frozenset(imports), frozenset(dispatched), tuple(data))
+    return _Parsed(facts.code, frozenset(imports), frozenset(dispatched), tuple(data))
 
 
 def module_closure(*modules: str, exclude: tuple[str, ...] = ()) -> list[Path]:
@@ -211,9 +273,7 @@ def _canonical(name: str, raw: bytes) -> bytes:
         if suffix == ".json":
             doc = json.loads(raw)
         else:
-            import yaml  # PyYAML: a dependency of ours and of Snakemake, light to import
-
-            doc = yaml.safe_load(raw)
+            doc = load_yaml(raw)
     except ValueError:
         return raw
     if name.endswith((".schema.yaml", ".schema.json")):

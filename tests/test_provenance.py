@@ -238,3 +238,25 @@ def test_schema_descriptions_rerun_nothing_but_defaults_do(tmp_path):
     assert _data_content(schema) == before
     schema.write_text(schema.read_text().replace("default: 0.1", "default: 0.2"))
     assert _data_content(schema) != before
+
+
+def test_parsed_module_facts_are_cached_by_content_and_a_damaged_entry_is_recomputed(package_copy, tmp_path,
+                                                                                     monkeypatch):
+    monkeypatch.setenv("OMNILIDAR_CACHE_DIR", str(tmp_path / "cache"))
+    first = _hash()
+    entries = sorted(provenance._facts_cache_dir().glob("*.json"))
+    closure = provenance.module_closure(*provenance.command_modules("stage"))
+    assert len(entries) == len({f.read_text() for f in closure})  # one entry per distinct source
+    assert _hash() == first  # read back from the cache
+    for entry in entries:
+        entry.write_text("{not json")
+    assert _hash() == first  # damaged entries are parsed again
+    # An edit is new content, so a new entry: the cache never answers for old code.
+    (package_copy / "core.py").write_text("def f():\n    return 5\n")
+    assert _hash() != first
+    # Where nothing can be written, nothing is cached and the hash is the same.
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file, not a directory")
+    monkeypatch.setenv("OMNILIDAR_CACHE_DIR", str(blocked))
+    (package_copy / "core.py").write_text("def f():\n    return 1\n")
+    assert _hash() == first

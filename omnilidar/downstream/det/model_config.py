@@ -20,6 +20,7 @@ from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.data_config import PlatformConfig, anchor_generator_config
 from omnilidar.config import workflow_file
 from omnilidar.errors import InputError
+from omnilidar.yaml_load import load_yaml
 
 DETECTORS = ("voxel_rcnn", "pv_rcnn")
 
@@ -31,7 +32,7 @@ def read_model_yaml(path: str | Path, section: str = "MODEL") -> dict:
     if not path.is_file():
         raise InputError(path, "detector config not found (downstream.det.detectors.<name>.config)")
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = load_yaml(path.read_text())
     except yaml.YAMLError as err:
         raise InputError(path, f"not valid YAML: {str(err).splitlines()[0]}") from None
     if not isinstance(doc, dict):
