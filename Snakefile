@@ -24,6 +24,26 @@ include: "rules/downstream.smk"
 include: "rules/detection.smk"
 
 
+# Jobs that only list files or assemble results (seconds of work): on a cluster they run on the
+# submitting host instead of waiting in the queue (locally this changes nothing).
+localrules:
+    all,
+    index_dataset,
+    domains_index,
+    make_subset,
+    make_pool,
+    make_heldout,
+    semkitti_result,
+    semkittic_result,
+    nusc_beam32_result,
+    semanticstf_result,
+    gda_curve,
+    gda_decomposition,
+    gda_budget,
+    pi3det_result,
+    pi3det_summary,
+
+
 onsuccess:
     record_versions()
     # Tell the user where the results are (the JSON files and their figures).

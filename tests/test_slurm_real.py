@@ -13,6 +13,7 @@ import json
 import os
 import shutil
 import subprocess
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -22,10 +23,11 @@ from workflow_helpers import ROOT, copy_workflow, snakemake
 SCRIPT = ROOT / "workflow" / "profiles" / "slurm" / "single-node.sh"
 TARGET = "results/semkitti_1pct.json"
 GENERATOR = "data/generator/full/model.pt"
-SUBSET = "data/subsets/semantickitti_1pct.json"
+SUMMARY = "results/data_summary.json"  # a CPU rule the headline target does not make
 # The test configuration with tiny trainings (the students run the embedded default's 200
-# iterations otherwise) and one seed per backbone, so that the ~33 jobs go through SLURM in a few
-# minutes: both runs use it, so they still compare.
+# iterations otherwise) and one seed per backbone, so that the ~27 cluster jobs (index, subset and
+# result assembly are local rules) go through SLURM in a few minutes: both runs use it, so they
+# still compare.
 FAST = ("downstream: {voxel_size: 0.8, schedule: {iterations: 3, log_interval: 1, checkpoint_interval: 2},\n"
         "             labeler: {voxel_size: 0.8, schedule: {iterations: 10, log_interval: 1}},\n"
         "             experiments: {semkitti: {seeds: 1}}}\n")
@@ -91,21 +93,18 @@ def _stable(result: dict) -> dict:
 
 
 def _profile_run(workdir: Path, cluster: SingleNode, overlay: Path, *targets: str):
-    old = {k: os.environ.get(k) for k in cluster.env}
-    os.environ.update(cluster.env)
-    try:
-        return snakemake(workdir, "--workflow-profile", "workflow/profiles/slurm", "--configfile", "config/test.yaml",
-                         str(overlay), "--slurm-status-command", "squeue",
-                         "--slurm-init-seconds-before-status-checks", "1", *targets)
-    finally:
-        for k, v in old.items():
-            os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
+    return snakemake(workdir, "--workflow-profile", "workflow/profiles/slurm", "--configfile", "config/test.yaml",
+                     str(overlay), "--slurm-status-command", "squeue",
+                     "--slurm-init-seconds-before-status-checks", "1", *targets,
+                     env=cluster.env)
 
 
 def test_headline_target_on_a_cpu_only_slurm_equals_the_local_run_and_gpu_rules_land_on_a_gres_node(tmp_path):
+    # The local run goes on beside the cluster pass (which mostly waits on the scheduler).
     local = _workflow_copy(tmp_path / "local")
     (tmp_path / "fast.yaml").write_text(FAST)
-    snakemake(local, "--configfile", "config/test.yaml", str(tmp_path / "fast.yaml"), "--", TARGET)
+    local_run = ThreadPoolExecutor(1).submit(snakemake, local, "--configfile", "config/test.yaml",
+                                             str(tmp_path / "fast.yaml"), "--", TARGET)
 
     # CPU-only pass: resources.gpus false on a node without GPUs.
     wd = _workflow_copy(tmp_path / "cluster")
@@ -115,8 +114,11 @@ def test_headline_target_on_a_cpu_only_slurm_equals_the_local_run_and_gpu_rules_
         jobs = cluster.jobs()
     finally:
         cluster.down()
+        local_run.result()
     assert len(jobs) >= 10 and {j["state"] for j in jobs} == {"COMPLETED"}, jobs
     assert {"train_generator", "train_labeler", "train_supervised", "train_gda"} <= {j["rule"] for j in jobs}
+    # Listing and assembly are local rules: they ran beside Snakemake, not through the queue.
+    assert not {"index_dataset", "make_subset", "semkitti_result"} & {j["rule"] for j in jobs}, jobs
     assert {j["partition"] for j in jobs} == {"cpu"} and not any("gpu" in j["gres"] for j in jobs), jobs
     ours, theirs = (json.loads((d / TARGET).read_text()) for d in (wd, local))
     assert _stable(ours) == _stable(theirs)
@@ -126,11 +128,11 @@ def test_headline_target_on_a_cpu_only_slurm_equals_the_local_run_and_gpu_rules_
     cluster = SingleNode(tmp_path / "slurm_gpu", gpu=True)
     try:
         _profile_run(wd, cluster, _cluster_overlay(tmp_path / "auto.yaml", cluster.path, "auto"),
-                     "--forcerun", "train_generator", "make_subset", "--", GENERATOR, SUBSET)
+                     "--forcerun", "train_generator", "--", GENERATOR, SUMMARY)
         jobs = cluster.jobs()
     finally:
         cluster.down()
     assert {j["state"] for j in jobs} == {"COMPLETED"}, jobs
     where = {j["rule"]: (j["partition"], j["gres"]) for j in jobs}
     assert where["train_generator"] == ("gpu", "gres:gpu:1"), jobs
-    assert where["make_subset"] == ("cpu", "N/A"), jobs
+    assert where["data_summary"] == ("cpu", "N/A"), jobs

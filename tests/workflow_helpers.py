@@ -26,9 +26,10 @@ def copy_workflow(dest: Path) -> Path:
     return dest
 
 
-def snakemake(workdir: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
-    """Run snakemake in ``workdir`` with that directory's package copy first on the path."""
-    env = dict(os.environ, PYTHONPATH=str(workdir), PYTHONDONTWRITEBYTECODE="1")
+def snakemake(workdir: Path, *args: str, check: bool = True, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run snakemake in ``workdir`` with that directory's package copy first on the path
+    (``env``: variables to set besides)."""
+    env = dict(os.environ, **(env or {}), PYTHONPATH=str(workdir), PYTHONDONTWRITEBYTECODE="1")
     cmd = [sys.executable, "-m", "snakemake", "--cores", "2", *args]
     out = subprocess.run(cmd, cwd=workdir, env=env, capture_output=True, text=True)
     if check and out.returncode != 0:
