@@ -24,7 +24,8 @@ import time
 
 import torch
 
-from omnilidar.downstream.det.ops import iou, nms, points, sampling
+from omnilidar.downstream.det.ops import nms, sampling
+from omnilidar.geometry import points_in_boxes as points, rotated_iou as iou
 
 
 def scene_boxes(gen: torch.Generator, n: int, half_extent: float = 70.0) -> torch.Tensor:

@@ -35,8 +35,8 @@ import torch
 import yaml
 
 from omnilidar.cli import main as omnilidar
-from omnilidar.downstream.det.ops.iou import boxes_iou_bev
-from omnilidar.downstream.det.ops.points import points_in_boxes_mask
+from omnilidar.geometry.rotated_iou import boxes_iou_bev
+from omnilidar.geometry.points_in_boxes import points_in_boxes_mask
 from omnilidar.downstream.det.pseudo_boxes import write_shard
 from omnilidar.io import semantickitti
 from omnilidar.io.atomic import atomic_path

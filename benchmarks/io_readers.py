@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from omnilidar.io import kitti_object, nuscenes, semantickitti
-from omnilidar.lidar.boxes import points_in_boxes
+from omnilidar.geometry.boxes import points_in_boxes
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from real_samples import NUSCENES_SWEEP, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)

@@ -272,7 +272,7 @@ def test_synthetic_pi3det_boxes_hold_points_and_scans_hold_objects(tmp_path):
     import torch
 
     from omnilidar.data.synthetic.export import write_shard
-    from omnilidar.downstream.det.ops.points import points_in_boxes_mask
+    from omnilidar.geometry.points_in_boxes import points_in_boxes_mask
 
     settings = validate({"datasets": {"pi3det": {"platforms": {"quadruped": {"scenes": 1, "scans_per_scene": 3},
                                                                 "drone": {"scenes": 1, "scans_per_scene": 3}}}}},

@@ -10,7 +10,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from omnilidar.downstream.det.ops import iou
+from omnilidar.geometry import rotated_iou as iou
 
 try:  # test-only reference geometry (the "test" extra)
     from shapely.geometry import Polygon
@@ -308,8 +308,8 @@ def test_class_agnostic_and_multi_class_nms_follow_openpcdet():
 
 # ---------------------------------------------------------------- points in boxes
 
-from omnilidar.downstream.det.ops import points as det_points  # noqa: E402
-from omnilidar.lidar.boxes import box_corners  # noqa: E402
+from omnilidar.geometry import points_in_boxes as det_points  # noqa: E402
+from omnilidar.geometry.boxes import box_corners  # noqa: E402
 
 
 def test_points_in_boxes_match_a_per_pair_loop():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from omnilidar.io import kitti360, kitti_object, nuscenes, pi3det, semantickitti
-from omnilidar.lidar.boxes import box_corners, points_in_boxes
+from omnilidar.geometry.boxes import box_corners, points_in_boxes
 from omnilidar.lidar.scan import Boxes, Scan
 from real_samples import NUSCENES_SWEEP, SEMANTICKITTI_SCAN, SEMANTICKITTI_TINY, real_file, require_real
 

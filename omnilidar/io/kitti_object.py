@@ -25,7 +25,7 @@ import numpy as np
 from omnilidar.errors import InputError
 from omnilidar.io import pointfile
 from omnilidar.io.atomic import write_text_atomic
-from omnilidar.lidar.boxes import box_corners
+from omnilidar.geometry.boxes import box_corners
 from omnilidar.lidar.scan import Boxes
 
 CALIB_SHAPES: dict[str, tuple[int, int]] = {

@@ -29,7 +29,7 @@ moderate / hard), metric (bbox: image IoU; bev: rotated IoU of [x, z, l, w, ry];
   an alpha other than -10.
 
 Deliberate difference: rotated overlaps are exact polygon clipping
-(:func:`omnilidar.downstream.det.ops.iou.rotated_overlap_2d`, OpenPCDet's
+(:func:`omnilidar.geometry.rotated_iou.rotated_overlap_2d`, OpenPCDet's
 clockwise angle convention); OpenPCDet's numba kernel returns 0 for identical
 rotated boxes and wrong values for nearly parallel boxes far from the origin.
 Loops over frames and boxes are plain Python with numpy inside (OpenPCDet uses
@@ -47,6 +47,7 @@ import math
 import numpy as np
 
 from omnilidar.errors import InputError
+from omnilidar.geometry.rotated_iou import rotated_overlap_2d
 
 CLASS_NAMES = ("Car", "Pedestrian", "Cyclist", "Van", "Person_sitting", "Truck")
 DIFFICULTIES = ("easy", "moderate", "hard")
@@ -93,7 +94,6 @@ def _rotated_intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N, M) intersection areas of [cx, cy, w, l, angle] rectangles (OpenPCDet's rotate_iou, criterion 2)."""
     import torch
 
-    from omnilidar.downstream.det.ops.iou import rotated_overlap_2d
 
     if len(a) == 0 or len(b) == 0:
         return np.zeros((len(a), len(b)))

@@ -17,8 +17,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from omnilidar.downstream.det.ops.iou import boxes_iou_bev
-from omnilidar.downstream.det.ops.points import points_in_boxes_mask
+from omnilidar.geometry.rotated_iou import boxes_iou_bev
+from omnilidar.geometry.points_in_boxes import points_in_boxes_mask
 
 OBJECT_ROTATION_TRIES = 50  # ST3D / Pi3DET num_try
 _CIRCLE_MARGIN = 0.01  # m

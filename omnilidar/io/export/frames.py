@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from omnilidar.downstream.det.ops.points import points_in_boxes_mask
 from omnilidar.errors import InputError
+from omnilidar.geometry.points_in_boxes import points_in_boxes_mask
 from omnilidar.io import pi3det, semantickitti
 from omnilidar.manifest import MANIFEST_NAME
 

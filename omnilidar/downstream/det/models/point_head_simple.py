@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from omnilidar.downstream.det.models.losses import sigmoid_focal_loss
-from omnilidar.downstream.det.ops.points import points_in_boxes
+from omnilidar.geometry.points_in_boxes import points_in_boxes
 
 
 def enlarge_boxes(boxes: torch.Tensor, extra_width) -> torch.Tensor:

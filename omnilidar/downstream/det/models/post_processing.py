@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from omnilidar.downstream.det.models.box_utils import strip_padding
-from omnilidar.downstream.det.ops.iou import boxes_iou3d
+from omnilidar.geometry.rotated_iou import boxes_iou3d
 from omnilidar.downstream.det.ops.nms import class_agnostic_nms, multi_class_nms
 
 

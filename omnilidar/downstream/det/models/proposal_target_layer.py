@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from omnilidar.downstream.det.models.box_utils import strip_padding
-from omnilidar.downstream.det.ops.iou import boxes_iou3d
+from omnilidar.geometry.rotated_iou import boxes_iou3d
 
 
 class ProposalTargetLayer:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from omnilidar.downstream.det.models.box_utils import strip_padding
-from omnilidar.downstream.det.ops.iou import boxes_iou3d, boxes_iou_bev_nearest
+from omnilidar.geometry.rotated_iou import boxes_iou3d, boxes_iou_bev_nearest
 
 
 class AxisAlignedTargetAssigner:

@@ -1,5 +1,4 @@
-"""Box and point operators of the detectors, pure PyTorch (any device).
+"""Operators of the detectors, pure PyTorch (any device): ``nms`` and ``sampling``.
 
-Boxes are (N, 7) [x, y, z_center, dx, dy, dz, heading] in the lidar frame, as
-OpenPCDet; each operator lives in its own module (iou, nms, points, sampling).
+Box geometry (rotated IoU, points in boxes) lives in ``omnilidar.geometry``.
 """

@@ -14,7 +14,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
-from omnilidar.downstream.det.ops.iou import iou_bev_self_pairs
+from omnilidar.geometry.rotated_iou import iou_bev_self_pairs
 
 # OpenPCDet NMS_TYPE names -> whether the IoU ignores headings.
 NMS_TYPES = {"nms_gpu": False, "nms_normal_gpu": True}

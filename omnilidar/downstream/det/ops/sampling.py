@@ -20,7 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from omnilidar.downstream.det.ops.points import expand_runs, pairs_within_squares
+from omnilidar.geometry.points_in_boxes import expand_runs, pairs_within_squares
 from omnilidar.sparse.tensor import pack_coords
 
 # (centre, window voxel) pairs per voxel-query batch: ~80 MB of scratch on CPU.

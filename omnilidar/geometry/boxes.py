@@ -8,6 +8,10 @@ from the lidar x axis, about z.
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+from omnilidar.geometry.points_in_boxes import points_in_boxes_mask
+
 
 def _as_boxes(boxes) -> np.ndarray:
     arr = getattr(boxes, "boxes", boxes)  # Boxes or a plain (M, 7) array
@@ -22,14 +26,10 @@ def points_in_boxes(points: np.ndarray, boxes) -> np.ndarray:
 
     ``points`` is (N, >=3) (only x, y, z are used); ``boxes`` is a Boxes or an
     (M, 7) array. The numpy face of the detection operator
-    ``omnilidar.downstream.det.ops.points.points_in_boxes_mask`` (one
+    ``omnilidar.geometry.points_in_boxes.points_in_boxes_mask`` (one
     implementation: a float32 bounding-square prefilter, then the exact rotated
     test in float64 on the candidates only).
     """
-    import torch
-
-    from omnilidar.downstream.det.ops.points import points_in_boxes_mask
-
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise ValueError(f"points must be (N, >=3), got {pts.shape}")
