@@ -38,9 +38,9 @@ def one(args) -> dict:
     import numpy as np
     import torch
 
-    from omnilidar.downstream.seg.minkunet import MinkUNet
-    from omnilidar.downstream.seg.spvcnn import SPVCNN
-    from omnilidar.downstream.seg.voxelize import IGNORE_INDEX, collate
+    from omnilidar.segnets.minkunet import MinkUNet
+    from omnilidar.segnets.spvcnn import SPVCNN
+    from omnilidar.segnets.voxelize import IGNORE_INDEX, collate
     from omnilidar.io.semantickitti import read_points
 
     if args.threads:

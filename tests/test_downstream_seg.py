@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from omnilidar.downstream.seg import checkpoints, dataset, label_spaces, robustness, subsets
+from omnilidar.data import subsets
+from omnilidar.downstream.seg import checkpoints, dataset, label_spaces, robustness
 from omnilidar.downstream.seg.experiments import compare, robustness_result
 from omnilidar.downstream.seg.pseudo_label import generated_records
 from omnilidar.errors import InputError

@@ -10,11 +10,12 @@ import pytest
 import torch
 
 from omnilidar.cli import main
-from omnilidar.downstream.seg import subsets
+from omnilidar.data import subsets
 from omnilidar.downstream.seg.dataset import SegScanDataset, records_from_entries
 from omnilidar.downstream.seg.label_spaces import get_label_space
 from omnilidar.downstream.seg.lasermix import inclination, laser_mix
-from omnilidar.downstream.seg.pseudo_label import pool_records, read_confidence
+from omnilidar.downstream.seg.dataset import read_confidence
+from omnilidar.downstream.seg.pseudo_label import pool_records
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
 from omnilidar.report import decomposition as dc

@@ -23,7 +23,7 @@ import torch
 
 from omnilidar.cli import main
 from omnilidar.errors import InputError
-from omnilidar.metrics.extractors.lidm_weights import convert_lidm_state, kernel_to_ours
+from omnilidar.interop.lidm import convert_lidm_state, kernel_to_ours
 from omnilidar.metrics.extractors.weights import build_model, file_sha, load_extractor
 from omnilidar.sparse.conv import SparseConv3d, SparseInverseConv3d, SubMConv3d
 from omnilidar.sparse.tensor import SparseTensor

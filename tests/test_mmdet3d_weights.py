@@ -18,9 +18,9 @@ import torch
 from omnilidar.config import section_defaults
 from omnilidar.downstream.seg.evaluate import load_segmentor
 from omnilidar.downstream.seg.labeler import import_labeler
-from omnilidar.downstream.seg.mmdet3d_weights import convert_mmdet3d_state
+from omnilidar.interop.mmdet3d import convert_mmdet3d_state
 from omnilidar.downstream.seg.models import build_segmentor
-from omnilidar.downstream.seg.voxelize import collate
+from omnilidar.segnets.voxelize import collate
 from omnilidar.errors import InputError
 
 

@@ -19,7 +19,7 @@ from omnilidar.config import load_config
 from omnilidar.data.range_image import encode
 from omnilidar.downstream.seg.models import build_segmentor, model_spec
 from omnilidar.downstream.seg.training import make_model
-from omnilidar.downstream.seg.voxelize import collate
+from omnilidar.segnets.voxelize import collate
 from omnilidar.generator.unet import build_denoiser, range_image_spec
 from omnilidar.metrics.extractors.rangenet import FRD_DIM, FRID_BANDS, band_average
 from omnilidar.metrics.extractors.views import range_views

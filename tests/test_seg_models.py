@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from omnilidar.downstream.seg.minkunet import MinkUNet, minkunet
-from omnilidar.downstream.seg.spvcnn import SPVCNN, devoxelize, spvcnn, trilinear_weights
-from omnilidar.downstream.seg.voxelize import IGNORE_INDEX, collate, voxel_labels, voxelize
+from omnilidar.segnets.minkunet import MinkUNet, minkunet
+from omnilidar.segnets.spvcnn import SPVCNN, devoxelize, spvcnn, trilinear_weights
+from omnilidar.segnets.voxelize import IGNORE_INDEX, collate, voxel_labels, voxelize
 from omnilidar.errors import InputError
 from omnilidar.sparse.tensor import SparseTensor
 

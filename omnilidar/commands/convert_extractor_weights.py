@@ -13,7 +13,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from omnilidar.metrics.extractors.lidm_weights import write_converted
+    from omnilidar.interop.lidm import write_converted
     from omnilidar.metrics.extractors.weights import file_sha
 
     arch = write_converted(args.kind, args.src, args.out)

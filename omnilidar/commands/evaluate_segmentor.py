@@ -37,7 +37,7 @@ def run(args) -> int:
         load_segmentor,
         semantickitti_dir_records,
     )
-    from omnilidar.downstream.seg.subsets import read_subset
+    from omnilidar.data.subsets import read_subset
     from omnilidar.downstream.seg.training import set_threads
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic

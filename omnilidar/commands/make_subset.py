@@ -21,7 +21,7 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    from omnilidar.downstream.seg.subsets import make_heldout, make_pool, make_subset, read_subset, write_subset
+    from omnilidar.data.subsets import make_heldout, make_pool, make_subset, read_subset, write_subset
     from omnilidar.errors import InputError
 
     if (args.exclude is None) == (args.percent is None) or (args.exclude is None) != (args.count is None):

@@ -24,7 +24,7 @@ def run(args) -> int:
     from pathlib import Path
 
     from omnilidar.config import validate
-    from omnilidar.downstream.seg.subsets import read_subset
+    from omnilidar.data.subsets import read_subset
     from omnilidar.errors import InputError
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.io.atomic import write_text_atomic

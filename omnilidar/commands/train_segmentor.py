@@ -40,7 +40,7 @@ def run(args) -> int:
     from omnilidar.downstream.seg.dataset import records_from_entries
     from omnilidar.downstream.seg.label_spaces import get_label_space
     from omnilidar.downstream.seg.pseudo_label import generated_records, pool_records
-    from omnilidar.downstream.seg.subsets import read_subset
+    from omnilidar.data.subsets import read_subset
     from omnilidar.downstream.seg.training import set_threads, train_segmentor
     from omnilidar.errors import InputError
 

@@ -206,12 +206,7 @@ def fidelity_report(scans: list[tuple[str, Scan]], sensor: SensorSpec, effects: 
 def plot_report(report: dict, path: str | Path) -> None:
     """Four panels: fractions per effect and severity (with the anchors' fog range),
     range and intensity histograms of weather returns, and time per scan vs anchors."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from omnilidar.io.atomic import atomic_path
+    from omnilidar.io.figure import plt, save_figure
 
     fig, axes = plt.subplots(2, 2, figsize=(13, 9))
     ax = axes[0, 0]
@@ -266,7 +261,4 @@ def plot_report(report: dict, path: str | Path) -> None:
     ax.set(ylabel="seconds per scan (1 core)", title="time per scan vs anchors")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -11,12 +11,15 @@ import json
 import sys
 from pathlib import Path
 
-from omnilidar.domains.builder import _jsonable, build_scan, scan_rng, write_points_kitti
+from omnilidar.data.range_image import round_trip
+from omnilidar.data.subsets import read_subset, write_subset
+from omnilidar.domains.builder import _jsonable, build_scan, range_image_spec, scan_rng, write_points_kitti
 from omnilidar.domains.source import load_index, read_entry
 from omnilidar.domains.spec import DomainSpec
 from omnilidar.errors import InputError
 from omnilidar.io import semantickitti
 from omnilidar.io.atomic import atomic_path
+from omnilidar.manifest import digest, file_sha256
 
 SIMULATED_POOL_STREAM = 0x51  # keeps these seeds apart from the domains' and the corrupted sets'
 
@@ -46,9 +49,6 @@ def round_trip_pool(domain: DomainSpec, settings: dict, index_path: str | Path, 
     size would give, each point with its true label. Written like :func:`simulate_pool`."""
     from dataclasses import asdict
 
-    from omnilidar.data.range_image import round_trip
-    from omnilidar.domains.builder import range_image_spec
-
     spec = range_image_spec(domain, settings)
 
     def trip(scan, k, source):
@@ -64,9 +64,6 @@ def _transformed_pool(domain: DomainSpec, index_path, pool_path, out, transform,
     atomically as ``out/velodyne``, ``out/labels``, ``out/pool.json`` (the pool document, with
     ``kind`` describing how it was made) and ``out/sidecar.json``."""
     from tqdm import tqdm
-
-    from omnilidar.downstream.seg.subsets import read_subset, write_subset
-    from omnilidar.manifest import digest, file_sha256
 
     pool = read_subset(pool_path)
     index = load_index(index_path, domain.dataset)

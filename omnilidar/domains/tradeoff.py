@@ -81,13 +81,9 @@ def tradeoff_study(scan: Scan, sensor: SensorSpec, effects: list[str], severity:
 
 def plot_tradeoff(result: dict, path: str | Path) -> None:
     """Error of the primary statistic vs time per scan, a line per knob, defaults starred."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from omnilidar.io.figure import plt, save_figure
     from matplotlib.ticker import NullFormatter
 
-    from omnilidar.io.atomic import atomic_path
 
     n = max(len(result), 1)
     cols = min(n, 3)
@@ -114,7 +110,4 @@ def plot_tradeoff(result: dict, path: str | Path) -> None:
     for ax in axes.ravel()[len(result):]:
         ax.axis("off")
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format=path.suffix.lstrip(".") or "png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -48,6 +48,7 @@ import numpy as np
 
 from omnilidar.errors import InputError
 from omnilidar.geometry.rotated_iou import rotated_overlap_2d
+from omnilidar.io.kitti_object import read_objects
 
 CLASS_NAMES = ("Car", "Pedestrian", "Cyclist", "Van", "Person_sitting", "Truck")
 DIFFICULTIES = ("easy", "moderate", "hard")
@@ -433,8 +434,6 @@ def pi3det_annos(boxes_lidar, names, scores=None) -> dict:
 def label_file_anno(path, need_score: bool = False) -> dict:
     """KITTI-format anno of a label_2 file (dimensions reordered h, w, l -> l, h, w as OpenPCDet's
     get_label_anno); ``need_score``: every line must carry the 16th column."""
-    from omnilidar.io.kitti_object import read_objects
-
     objects = read_objects(path)
     if need_score and any(o.score is None for o in objects):
         line = next(i for i, o in enumerate(objects, 1) if o.score is None)

@@ -72,12 +72,8 @@ def budget_figure(path: str | Path, doc: dict) -> None:
     """Left: the GDA gain over supervised-only against the generator's training CPU-minutes (seed dots,
     mean +- std, the fitted trend), with supervised-only (0) and pseudo-labelled real scans as levels.
     Right: each budget's sample quality. Written atomically as PNG."""
-    import matplotlib
+    from omnilidar.io.figure import plt, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from omnilidar.io.atomic import atomic_path
     from omnilidar.report.log_axis import readable_log_x
 
     budgets = doc["budgets"]
@@ -124,6 +120,4 @@ def budget_figure(path: str | Path, doc: dict) -> None:
         ax.set_title(f"{metric} vs held-out real (lower is better)", fontsize=8)
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)

@@ -6,14 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.io.atomic import atomic_path
 
 
 def plot_data_summary(summary: dict, path: str | Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from omnilidar.io.figure import plt, save_figure
 
     groups = summary["groups"]
     fig, axes = plt.subplots(2, 2, figsize=(13, 9))
@@ -61,6 +57,4 @@ def plot_data_summary(summary: dict, path: str | Path) -> None:
     sources = ", ".join(f"{k}: {v}" for k, v in summary["data_source"].items())
     fig.suptitle(f"Scene statistics ({sources})")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -185,12 +185,7 @@ def decomposition(evaluations: list[dict], attempts: dict[str, list[dict]] | Non
 def decomposition_figure(path: str | Path, doc: dict) -> None:
     """One panel per backbone: each row's mean val mIoU with its standard deviation and every
     seed as a dot; a dashed line at supervised-only. Written atomically as PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from omnilidar.io.atomic import atomic_path
+    from omnilidar.io.figure import plt, save_figure
 
     studies = doc["backbones"]
     chained = all(all(k in st["links"] for k in CHAIN) for st in studies.values())
@@ -233,6 +228,4 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
     fig.suptitle(f"GDA decomposition: {setup['percent']:g} % labels + N = {setup['scans']} scans\n"
                  f"({setup['domain']} samples for GDA, scored on {setup['evalset']})", fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.io.atomic import atomic_path
 
 COLORS = {"supervised-only": "#8c8c8c", "GDA": "#1f77b4"}
 
@@ -16,10 +15,7 @@ def pr_figure(panels: list[dict], out: str | Path, title: str = "") -> None:
 
     Each panel: ``{"title", "series": {label: {"precision": [41 values at recall i/40], "r11", "r40"}}}``.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from omnilidar.io.figure import plt, save_figure
 
     if not panels:
         raise ValueError("no panels to draw")
@@ -49,18 +45,13 @@ def pr_figure(panels: list[dict], out: str | Path, title: str = "") -> None:
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out, dpi=110)
 
 
 def label_fraction_figure(results: list[dict], out: str | Path, metric: str = "3d_R11@0.5") -> None:
     """Car AP against the real-label fraction: one panel per platform and detector, supervised-only
     and GDA, the platform's box labeler as a line. ``results``: pi3det-result documents."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from omnilidar.io.figure import plt, save_figure
 
     if not results:
         raise ValueError("no Pi3DET results to draw")
@@ -85,6 +76,4 @@ def label_fraction_figure(results: list[dict], out: str | Path, metric: str = "3
             ax.set_title(f"{platform}, {detector}", fontsize=9)
             ax.legend(fontsize=7)
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out, dpi=110)

@@ -246,13 +246,9 @@ def curve_figure(path: str | Path, doc: dict) -> None:
     """Three panels, written atomically as PNG: mIoU against generated scans, mIoU
     against total compute (points labelled with generated scans), and each point's
     compute split into training, sampling and pseudo-labelling."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from omnilidar.io.figure import plt, save_figure
     from matplotlib.ticker import MaxNLocator
 
-    from omnilidar.io.atomic import atomic_path
 
     rows = doc["rows"]
     counts = [int(r["generated_scans"]) for r in rows]
@@ -301,6 +297,4 @@ def curve_figure(path: str | Path, doc: dict) -> None:
         fig.suptitle(f"GDA curve: {setup.get('backbone')}, {labels}, {setup.get('domain')} samples "
                      f"({setup.get('dataset')})", fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)

@@ -84,12 +84,8 @@ def _bev_image(points: np.ndarray, half: float = 50.0, bins: int = 200) -> np.nd
 def samples_figure(path, spec: RangeImageSpec, columns: dict[str, dict[str, np.ndarray]]) -> None:
     """Per domain (rows) and set (columns, e.g. Real, OmniLiDAR, baseline) one range image
     (log-range channel) above its BEV. ``columns``: {set: {domain: (2, H, W) image}}."""
-    import matplotlib
+    from omnilidar.io.figure import plt, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from omnilidar.io.atomic import atomic_path
     from omnilidar.metrics.extractors.views import range_views
 
     sets = list(columns)
@@ -113,9 +109,7 @@ def samples_figure(path, spec: RangeImageSpec, columns: dict[str, dict[str, np.n
             if c == 0:
                 ax_img.set_ylabel(dom, fontsize=8)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def pareto_front(seconds: list[float], errors: list[float]) -> list[bool]:
@@ -134,12 +128,8 @@ def tradeoff_figure(path, tradeoff: dict) -> None:
     """Metric against seconds per scan per sampler (Pareto front marked), the domain
     effects' error/time curves, and downstream mIoU against the total compute of the
     generated scans (points labelled with their number) when a GDA curve was read."""
-    import matplotlib
+    from omnilidar.io.figure import plt, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from omnilidar.io.atomic import atomic_path
     from omnilidar.report.gda_curve import draw_miou_vs_compute
     from omnilidar.report.log_axis import readable_log_x
 
@@ -179,19 +169,12 @@ def tradeoff_figure(path, tradeoff: dict) -> None:
                                     if setup.get("backbone") and isinstance(setup.get("percent"), (int, float)) else "")
         draw_miou_vs_compute(axes[0, col], tradeoff["downstream"], title)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def evidence_figure(path, evidence: dict) -> None:
     """Trained vs untrained BEV JSD per domain, and generated vs real domain statistics."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from omnilidar.io.atomic import atomic_path
+    from omnilidar.io.figure import plt, save_figure
 
     doms = list(evidence["domains"])
     stats = ["empty_row_fraction", "near_range_fraction", "points_per_scan", "mean_elevation_deg"]
@@ -211,9 +194,7 @@ def evidence_figure(path, evidence: dict) -> None:
         ax.set_title(stat.replace("_", " "), fontsize=9)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=90, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=90)
 
 
 def write_outputs(result: dict, out, markdown_path=None, markdown: str | None = None) -> None:

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 
-from omnilidar.io.atomic import atomic_path
 
 COLORS = ("#8c8c8c", "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728")
 
@@ -18,10 +17,7 @@ def iou_bars(panels: list[dict], out: str | Path, title: str = "") -> None:
     "miou": fraction}}}``; bars are percent, the legend carries each series' mIoU. A series over
     several seeds also has ``iou_std``, ``miou_std`` and ``seeds``: error bars and mean +- std.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from omnilidar.io.figure import plt, save_figure
 
     if not panels:
         raise ValueError("no panels to draw")
@@ -47,6 +43,4 @@ def iou_bars(panels: list[dict], out: str | Path, title: str = "") -> None:
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, out, dpi=110)

@@ -1,6 +1,6 @@
 """Label subsets of a Pi3DET platform's training split (1/5/10/20/50/100 %).
 
-The same rule as the segmentation subsets (:mod:`omnilidar.downstream.seg.subsets`):
+The same rule as the segmentation subsets (:mod:`omnilidar.data.subsets`):
 one frame out of every k = round(1 / f) of the ``<platform>_train`` split in
 index order, no randomness. Pi3DET frames need boxes, not point labels, so a
 frame without a label file is fine; a subset whose frames hold no box of the
@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from omnilidar.data.index import read_index
-from omnilidar.downstream.seg.subsets import FORMAT, every_k, select_every_k
+from omnilidar.data.subsets import FORMAT, every_k, select_every_k
 from omnilidar.errors import InputError
 from omnilidar.io import pi3det
 from omnilidar.manifest import digest

@@ -36,7 +36,7 @@ from omnilidar.downstream.seg.label_spaces import (
     semantickitti_to_nuscenes,
 )
 from omnilidar.downstream.seg.lasermix import laser_mix
-from omnilidar.downstream.seg.voxelize import SegBatch, collate
+from omnilidar.segnets.voxelize import SegBatch, collate
 from omnilidar.errors import InputError
 from omnilidar.io import nuscenes, semantickitti
 
@@ -111,10 +111,28 @@ def read_record(record: dict, space: LabelSpace) -> tuple[np.ndarray, np.ndarray
     return points, read_train_ids(record, len(points), space)
 
 
+CONFIDENCE = "confidence"
+
+
+def confidence_file(label_file: str | Path) -> Path:
+    """The confidence file beside a pseudo-label file (``labels/X.label`` -> ``confidence/X.bin``)."""
+    label_file = Path(label_file)
+    return label_file.parent.parent / CONFIDENCE / f"{label_file.stem}.bin"
+
+
+def read_confidence(label_file: str | Path, num_points: int) -> np.ndarray | None:
+    """Per-point labeler confidence (0..1) of a pseudo-label file, None when none was written."""
+    path = confidence_file(label_file)
+    if not path.is_file():
+        return None
+    conf = np.fromfile(path, np.uint8)
+    if len(conf) != num_points:
+        raise InputError(path, f"holds {len(conf)} confidences for {num_points} points")
+    return conf.astype(np.float32) / 255.0
+
+
 def confident_labels(record: dict, labels: np.ndarray, threshold: float) -> np.ndarray:
     """``labels`` with the points whose pseudo-label confidence is below ``threshold`` set to ignore."""
-    from omnilidar.downstream.seg.pseudo_label import read_confidence
-
     conf = read_confidence(record["labels"], len(labels))
     if conf is None:
         raise InputError(record["labels"], "pseudo-labels have no confidences (made by an older pseudo-label run)")

@@ -25,10 +25,14 @@ from pathlib import Path
 
 import torch
 
+from omnilidar.data.index import read_index
 from omnilidar.downstream.seg.checkpoints import FORMAT, load_payload, save_payload
+from omnilidar.downstream.seg.dataset import records_from_entries
 from omnilidar.downstream.seg.label_spaces import get_label_space
 from omnilidar.downstream.seg.models import model_spec, restore
 from omnilidar.errors import InputError
+from omnilidar.interop.lidm import load_checkpoint, unwrap_state
+from omnilidar.interop.mmdet3d import convert_mmdet3d_state, looks_like_mmdet3d
 
 LABEL_SPACE = "semantickitti"  # pseudo-labels are raw SemanticKITTI ids
 
@@ -36,8 +40,6 @@ LABEL_SPACE = "semantickitti"  # pseudo-labels are raw SemanticKITTI ids
 def import_labeler(settings: dict, checkpoint: str | Path, out: str | Path) -> dict:
     """Check a user's checkpoint (it must load into its architecture) and write
     it as a segmentor payload to ``out``."""
-    from omnilidar.metrics.extractors.lidm_weights import load_checkpoint
-
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file():
         raise InputError(checkpoint, "labeler checkpoint not found")
@@ -65,9 +67,6 @@ def import_labeler(settings: dict, checkpoint: str | Path, out: str | Path) -> d
 
 def user_state(settings: dict, loaded, checkpoint: Path, num_classes: int) -> tuple[dict, dict, str]:
     """``(spec, our_state_dict, layout)`` of a loaded user checkpoint that is not our payload."""
-    from omnilidar.downstream.seg.mmdet3d_weights import convert_mmdet3d_state, looks_like_mmdet3d
-    from omnilidar.metrics.extractors.lidm_weights import unwrap_state
-
     state = unwrap_state(loaded, checkpoint)
     if looks_like_mmdet3d(state):
         state, spec = convert_mmdet3d_state(state, checkpoint)
@@ -90,9 +89,6 @@ def training_settings(section: dict) -> dict:
 
 def labeler_records(index_path: str | Path) -> list[dict]:
     """The labeler's training scans: 100 % of the real SemanticKITTI training split."""
-    from omnilidar.data.index import read_index
-    from omnilidar.downstream.seg.dataset import records_from_entries
-
     index = read_index(index_path)
     if index.get("dataset") != LABEL_SPACE:
         raise InputError(index_path, f"the labeler trains on a {LABEL_SPACE} index, got {index.get('dataset')}")

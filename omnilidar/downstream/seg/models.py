@@ -7,10 +7,7 @@ from pathlib import Path
 import torch
 
 from omnilidar.errors import InputError
-
-BACKBONES = ("minkunet", "spvcnn")
-IN_CHANNELS = 4  # x, y, z, intensity (0..1)
-
+from omnilidar.segnets.build import BACKBONES, IN_CHANNELS, build_segmentor
 
 def model_spec(backbone: str, settings: dict, num_classes: int) -> dict:
     """The architecture record stored with a checkpoint (enough to rebuild it)."""
@@ -18,22 +15,6 @@ def model_spec(backbone: str, settings: dict, num_classes: int) -> dict:
         raise InputError(None, f"unknown backbone {backbone!r}; known: {', '.join(BACKBONES)}")
     return {"backbone": backbone, "width": settings["width"], "depth": int(settings["depth"]),
             "in_channels": IN_CHANNELS, "num_classes": int(num_classes)}
-
-
-def build_segmentor(spec: dict, backend: str = "auto", device: str | torch.device = "cpu",
-                    generator: torch.Generator | None = None) -> torch.nn.Module:
-    """A freshly initialised MinkUNet or SPVCNN (weights drawn from ``generator``)."""
-    from omnilidar.downstream.seg.minkunet import MinkUNet
-    from omnilidar.downstream.seg.spvcnn import SPVCNN
-
-    cls = {"minkunet": MinkUNet, "spvcnn": SPVCNN}.get(spec["backbone"])
-    if cls is None:
-        raise InputError(None, f"unknown backbone {spec['backbone']!r}; known: {', '.join(BACKBONES)}")
-    try:
-        return cls(in_channels=spec["in_channels"], num_classes=spec["num_classes"], width=spec["width"],
-                   depth=spec["depth"], backend=backend, device=device, generator=generator)
-    except ValueError as err:  # unknown width or depth
-        raise InputError(None, f"{spec['backbone']}: {err}") from None
 
 
 def restore(spec: dict, state_dict: dict, backend: str, device, source: str | Path) -> torch.nn.Module:

@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from omnilidar.data.subsets import read_subset
+from omnilidar.downstream.seg.dataset import CONFIDENCE, records_from_entries
 from omnilidar.downstream.seg.evaluate import predict_points
 from omnilidar.downstream.seg.label_spaces import get_label_space
 from omnilidar.errors import InputError
@@ -32,26 +34,6 @@ from omnilidar.io.json_file import read_json
 from omnilidar.metrics.segmentation import ConfusionMatrix
 
 SIDECAR = "sidecar.json"
-CONFIDENCE = "confidence"
-
-
-def confidence_file(label_file: str | Path) -> Path:
-    """The confidence file beside a pseudo-label file (``labels/X.label`` -> ``confidence/X.bin``)."""
-    label_file = Path(label_file)
-    return label_file.parent.parent / CONFIDENCE / f"{label_file.stem}.bin"
-
-
-def read_confidence(label_file: str | Path, num_points: int) -> np.ndarray | None:
-    """Per-point labeler confidence (0..1) of a pseudo-label file, None when none was written."""
-    path = confidence_file(label_file)
-    if not path.is_file():
-        return None
-    conf = np.fromfile(path, np.uint8)
-    if len(conf) != num_points:
-        raise InputError(path, f"holds {len(conf)} confidences for {num_points} points")
-    return conf.astype(np.float32) / 255.0
-
-
 def sample_scans(sample_dir: str | Path) -> list[Path]:
     """The ``velodyne/*.bin`` scans of a sample shard, sorted by name."""
     velo = Path(sample_dir) / "velodyne"
@@ -76,8 +58,6 @@ def pseudo_label_pool(model: torch.nn.Module, payload: dict, pool_path: str | Pa
                       batch_size: int = 2) -> dict:
     """Label the real scans of a pool (``make-subset --exclude``): ``labels/%06d.label`` for its k-th
     scan, and, where the scans have true labels, the pseudo-labels' accuracy against them."""
-    from omnilidar.downstream.seg.subsets import read_subset
-
     pool = read_subset(pool_path)
     if pool["dataset"] != "semantickitti":
         raise InputError(pool_path, f"the labeler labels SemanticKITTI scans, not {pool['dataset']}")
@@ -131,9 +111,6 @@ def _pseudo_label(model, payload: dict, scans: list[tuple], out: str | Path, bat
 def pool_records(pool_path: str | Path, label_dir: str | Path | None) -> list[dict]:
     """Training records of a pool's real scans: with their true labels (``label_dir`` None) or with
     the pseudo-labels of :func:`pseudo_label_pool` in ``label_dir`` (checked against the pool)."""
-    from omnilidar.downstream.seg.dataset import records_from_entries
-    from omnilidar.downstream.seg.subsets import read_subset
-
     pool = read_subset(pool_path)
     records = records_from_entries(pool["entries"], pool["dataset"])
     if label_dir is None:

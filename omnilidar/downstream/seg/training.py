@@ -41,7 +41,7 @@ from omnilidar.downstream.seg.checkpoints import save_payload
 from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, total_iterations
 from omnilidar.downstream.seg.label_spaces import LabelSpace
 from omnilidar.downstream.seg.models import build_segmentor, model_spec
-from omnilidar.downstream.seg.voxelize import IGNORE_INDEX, SegBatch
+from omnilidar.segnets.voxelize import IGNORE_INDEX, SegBatch
 from omnilidar.errors import InputError
 
 def trajectory(settings: dict, backbone: str, real: list[dict], generated: list[dict], lasermix: bool = False) -> dict:

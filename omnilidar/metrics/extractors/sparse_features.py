@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from omnilidar.downstream.seg.voxelize import VOXEL_SIZE, collate
+from omnilidar.segnets.voxelize import VOXEL_SIZE, collate
 from omnilidar.errors import InputError
 
 NUM_BINS = 16

@@ -29,19 +29,20 @@ import torch.nn.functional as F
 
 from omnilidar.data.range_image import RangeImageSpec, encode, project
 from omnilidar.errors import InputError
+from omnilidar.io.semantickitti import read_label, read_points, to_train_ids
 from omnilidar.metrics.extractors.pointnet import pixel_points
 from omnilidar.metrics.extractors.rangenet import SENSOR_MEAN, SENSOR_STD, normalise, protocol_image
+from omnilidar.metrics.extractors.sparse_features import scan_inputs
 from omnilidar.metrics.extractors.views import range_views, select
 from omnilidar.metrics.extractors.weights import build_model, save_self_trained
 from omnilidar.provenance import config_hash
+from omnilidar.segnets.voxelize import collate
 
 NUM_IDS = 20  # train ids 0 (ignore) .. 19
 
 
 def labelled_views(entries: list[dict], spec: RangeImageSpec) -> tuple[dict, np.ndarray]:
     """Protocol views of labelled scans and their per-pixel train ids (B, H, W)."""
-    from omnilidar.io.semantickitti import read_label, read_points, to_train_ids
-
     images, labels = [], []
     for entry in entries:
         if not entry.get("labels"):
@@ -69,9 +70,6 @@ def _loss(kind: str, model, views: dict, labels: np.ndarray) -> torch.Tensor:
         target = torch.from_numpy(hist[has] / hist[has].sum(1, keepdims=True)).float()
         logits = model(torch.from_numpy(pixel_points(views["xyz_masked"][has])))
         return -(target * F.log_softmax(logits, 1)).sum(1).mean()
-    from omnilidar.downstream.seg.voxelize import collate
-    from omnilidar.metrics.extractors.sparse_features import scan_inputs
-
     scans, ids = [], []
     for b, pts in enumerate(views["points"]):
         keep = np.einsum("ij,ij->i", pts, pts) > 0

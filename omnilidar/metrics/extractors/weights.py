@@ -25,7 +25,7 @@ official layouts:
 * PointNet, MinkUNet, SPVCNN: one state dict (optionally under ``state_dict``);
 * MinkUNet, SPVCNN also: LiDM's / SPVNAS's torchsparse MinkowskiNet / SPVCNN
   checkpoints as published (``model.ckpt``), converted on load by
-  :mod:`.lidm_weights` (the tag hashes the file as given).
+  :mod:`omnilidar.interop.lidm` (the tag hashes the file as given).
 """
 
 from __future__ import annotations
@@ -40,10 +40,15 @@ import torch
 import yaml
 
 from omnilidar.errors import InputError
+from omnilidar.interop import lidm
+from omnilidar.interop.lidm import load_checkpoint
+from omnilidar.io.atomic import atomic_path
 from omnilidar.metrics.extractors import KINDS, METRIC_NAMES
 from omnilidar.metrics.extractors.pointnet import PointNet, PointNetExtractor
 from omnilidar.metrics.extractors.rangenet import SENSOR_MEAN, SENSOR_STD, RangeNet, RangeNetExtractor
 from omnilidar.metrics.extractors.sparse_features import SparseExtractor
+from omnilidar.segnets.build import build_segmentor
+from omnilidar.segnets.minkunet import WIDTHS
 
 FORMAT = "omnilidar-extractor/1"
 # The architecture each published number was computed with.
@@ -95,12 +100,9 @@ def build_model(kind: str, arch: dict, generator: torch.Generator | None = None)
         return RangeNet(arch["in_channels"], arch.get("num_classes", 20), arch["depth"], arch["width"])
     if kind == "fpd":
         return PointNet(arch["num_classes"])
-    from omnilidar.downstream.seg.minkunet import MinkUNet
-    from omnilidar.downstream.seg.spvcnn import SPVCNN
-
-    cls = MinkUNet if kind == "fsvd" else SPVCNN
-    return cls(in_channels=4, num_classes=arch.get("num_classes", 19), width=arch["width"],
-               depth=arch.get("depth", 18), backend="torch", generator=generator)
+    return build_segmentor({"backbone": "minkunet" if kind == "fsvd" else "spvcnn", "in_channels": 4,
+                            "num_classes": arch.get("num_classes", 19), "width": arch["width"],
+                            "depth": arch.get("depth", 18)}, "torch", generator=generator)
 
 
 def wrap(kind: str, model: torch.nn.Module, mean=SENSOR_MEAN, std=SENSOR_STD):
@@ -164,8 +166,6 @@ def load_extractor(kind: str, path: str | Path) -> LoadedExtractor:
     payload = None
     if path.is_file() and not path.name.endswith((".tar.gz", ".tgz", ".tar")):
         if kind in ("fsvd", "fpvd"):  # LiDM's Lightning checkpoints need stand-ins for unknown classes
-            from omnilidar.metrics.extractors.lidm_weights import load_checkpoint
-
             payload = load_checkpoint(path)
         else:
             try:
@@ -181,11 +181,9 @@ def load_extractor(kind: str, path: str | Path) -> LoadedExtractor:
         arch = _rangenet_arch(state, path)
     elif kind in ("fsvd", "fpvd") and payload is not None:
         # LiDM's torchsparse MinkowskiNet / SPVCNN files convert on the fly; our layout loads as is.
-        from omnilidar.metrics.extractors import lidm_weights
-
-        state = lidm_weights.unwrap_state(payload, path)
-        if lidm_weights.looks_like_torchsparse(state):
-            state, arch = lidm_weights.convert_lidm_state(state, kind, path)
+        state = lidm.unwrap_state(payload, path)
+        if lidm.looks_like_torchsparse(state):
+            state, arch = lidm.convert_lidm_state(state, kind, path)
         else:
             arch = _infer_arch(kind, state, path)
     else:
@@ -205,8 +203,6 @@ def _infer_arch(kind: str, state: dict, where) -> dict:
         if "fc3.weight" not in state:
             raise InputError(where, "not a PointNet classifier state dict (no fc3.weight)")
         return {"num_classes": int(state["fc3.weight"].shape[0])}
-    from omnilidar.downstream.seg.minkunet import WIDTHS
-
     classes = int(state["classifier.weight"].shape[0]) if "classifier.weight" in state else 19
     for width in WIDTHS:
         for depth in (18, 34):
@@ -235,8 +231,6 @@ def _load_self_trained(kind: str, path: Path, payload: dict) -> LoadedExtractor:
 def save_self_trained(path: str | Path, kind: str, arch: dict, config_hash: str, model: torch.nn.Module,
                       meta: dict) -> None:
     """Write a self-trained extractor (weights-only loadable) atomically."""
-    from omnilidar.io.atomic import atomic_path
-
     payload = {
         "format": FORMAT,
         "kind": kind,

@@ -21,7 +21,7 @@ from types import SimpleNamespace
 import torch
 from torch import nn
 
-from omnilidar.downstream.seg.voxelize import SegBatch
+from omnilidar.segnets.voxelize import SegBatch
 from omnilidar.sparse.backend import conv_layers
 from omnilidar.sparse.tensor import SparseTensor
 

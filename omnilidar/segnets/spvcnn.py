@@ -19,8 +19,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from omnilidar.downstream.seg.minkunet import NUM_SEG_CLASSES, UNetTrunk, concat, init_weights, network_input
-from omnilidar.downstream.seg.voxelize import SegBatch
+from omnilidar.segnets.minkunet import NUM_SEG_CLASSES, UNetTrunk, concat, init_weights, network_input
+from omnilidar.segnets.voxelize import SegBatch
 from omnilidar.sparse.kernel_map import KeyTable
 from omnilidar.sparse.tensor import SparseTensor, pack_coords
 

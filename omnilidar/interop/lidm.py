@@ -60,6 +60,9 @@ from pathlib import Path
 import torch
 
 from omnilidar.errors import InputError
+from omnilidar.io.atomic import atomic_path
+from omnilidar.segnets.build import build_segmentor
+from omnilidar.segnets.minkunet import WIDTHS
 
 KINDS = ("fsvd", "fpvd")
 # Keys of a training wrapper, not of the network: dropped silently.
@@ -235,8 +238,6 @@ def _need(state: dict, key: str, where, dims: int) -> torch.Tensor:
 
 def infer_arch(state: dict, kind: str, where) -> tuple[dict, list[int]]:
     """Our architecture dict and torchsparse's channel list ``cs`` from the shapes."""
-    from omnilidar.downstream.seg.minkunet import WIDTHS
-
     stem = _need(state, "stem.0.kernel", where, 3)
     cs = [int(stem.shape[2])]
     cs += [int(_need(state, f"stage{s}.1.net.0.kernel", where, 3).shape[2]) for s in range(1, 5)]
@@ -253,6 +254,37 @@ def infer_arch(state: dict, kind: str, where) -> tuple[dict, list[int]]:
                             f"{'MinkowskiNet' if kind == 'fsvd' else 'SPVCNN'} widths of another cr are not supported")
 
 
+def _network(kind: str, arch: dict) -> torch.nn.Module:
+    """Our network for a converted FSVD (MinkUNet) or FPVD (SPVCNN) ``arch``."""
+    return build_segmentor({"backbone": "minkunet" if kind == "fsvd" else "spvcnn", "in_channels": 4,
+                            "num_classes": arch.get("num_classes", 19), "width": arch["width"],
+                            "depth": arch.get("depth", 18)}, "torch")
+
+
+def remap_state(state: dict, mapping, expected: dict, their_shape, to_ours, network: str,
+                where) -> dict[str, torch.Tensor]:
+    """Our state dict from another layout's ``state`` along ``mapping`` ((their key, our key, type));
+    ``expected`` is our network's state dict, ``their_shape(our_shape, type)`` the shape a key must
+    have there, ``to_ours(tensor, type)`` its conversion. A missing, misshapen or non-finite key
+    raises InputError naming ``where`` (``network`` says what should have had it)."""
+    out: dict[str, torch.Tensor] = {}
+    for theirs, ours, typ in mapping:
+        target = expected[ours]
+        if theirs not in state:
+            if theirs.endswith("num_batches_tracked"):
+                out[ours] = torch.zeros((), dtype=torch.long)
+                continue
+            raise InputError(where, f"missing key {theirs!r} ({network} has it)")
+        t = state[theirs]
+        want = their_shape(target.shape, typ)
+        if tuple(t.shape) != want:
+            raise InputError(where, f"key {theirs!r} has shape {tuple(t.shape)}, expected {want}")
+        if t.is_floating_point() and not torch.isfinite(t).all():
+            raise InputError(where, f"key {theirs!r} contains NaN or Inf")
+        out[ours] = to_ours(t.to(target.dtype), typ).clone()
+    return out
+
+
 def convert_lidm_state(state: dict, kind: str, where=None) -> tuple[dict[str, torch.Tensor], dict]:
     """Convert a torchsparse MinkowskiNet (``kind="fsvd"``) or SPVCNN (``"fpvd"``)
     state dict to ours.
@@ -264,7 +296,6 @@ def convert_lidm_state(state: dict, kind: str, where=None) -> tuple[dict[str, to
     """
     if kind not in KINDS:
         raise InputError(where, f"torchsparse weights are FSVD or FPVD extractors, not {kind!r}")
-    from omnilidar.metrics.extractors.weights import build_model
 
     state = {k: v for k, v in state.items() if not k.startswith(IGNORED_PREFIXES)}
     if kind == "fsvd":
@@ -277,25 +308,14 @@ def convert_lidm_state(state: dict, kind: str, where=None) -> tuple[dict[str, to
         hint = " (SPVCNN point MLPs in an FSVD file?)" if kind == "fsvd" else ""
         raise InputError(where, f"unexpected key {unknown[0]!r} for a {'MinkowskiNet' if kind == 'fsvd' else 'SPVCNN'}"
                                 f" with widths {cs}{hint}")
-    expected = build_model(kind, arch).state_dict()
-    out: dict[str, torch.Tensor] = {}
-    for ts, ours, typ in mapping:
-        target = expected[ours]
-        if ts not in state:
-            if ts.endswith("num_batches_tracked"):
-                out[ours] = torch.zeros((), dtype=torch.long)
-                continue
-            raise InputError(where, f"missing key {ts!r} (a {'MinkowskiNet' if kind == 'fsvd' else 'SPVCNN'} "
-                                    f"with widths {cs} has it)")
-        t = state[ts]
-        want = ours_to_kernel_shape(target.shape) if typ.startswith("conv") else tuple(target.shape)
-        if tuple(t.shape) != want:
-            raise InputError(where, f"key {ts!r} has shape {tuple(t.shape)}, expected {want}")
-        if t.is_floating_point() and not torch.isfinite(t).all():
-            raise InputError(where, f"key {ts!r} contains NaN or Inf")
-        if typ.startswith("conv"):
-            t = kernel_to_ours(t.to(target.dtype), int(typ[4:]))
-        out[ours] = t.to(target.dtype).clone()
+    def their_shape(ours_shape, typ):
+        return ours_to_kernel_shape(ours_shape) if typ.startswith("conv") else tuple(ours_shape)
+
+    def to_ours(t, typ):
+        return kernel_to_ours(t, int(typ[4:])) if typ.startswith("conv") else t
+
+    network = f"a {'MinkowskiNet' if kind == 'fsvd' else 'SPVCNN'} with widths {cs}"
+    out = remap_state(state, mapping, _network(kind, arch).state_dict(), their_shape, to_ours, network, where)
     return out, arch
 
 
@@ -315,11 +335,8 @@ def write_converted(kind: str, src: str | Path, dst: str | Path) -> dict:
 
     The output is checked by loading it strictly into the network first.
     """
-    from omnilidar.io.atomic import atomic_path
-    from omnilidar.metrics.extractors.weights import build_model
-
     state, arch = read_lidm_file(kind, src)
-    build_model(kind, arch).load_state_dict(state, strict=True)
+    _network(kind, arch).load_state_dict(state, strict=True)
     with atomic_path(dst) as tmp:
         torch.save(state, tmp)
     return arch

@@ -16,7 +16,7 @@ Backbone names (``sparseconv_backend``), all mapped by :func:`key_map`:
   ``.downsample.{0,1}`` (basic blocks), ``decoder.{i}.0.net.{0,1}`` (transposed
   conv), ``decoder.{i}.1.{j}...``, SPVCNN ``point_transforms.{0,1,2}.{0,1}``.
   Kernels ``(K, C_in, C_out)`` in torchsparse's offset order, converted as the
-  LiDM extractor weights are (:func:`omnilidar.metrics.extractors.lidm_weights.kernel_to_ours`).
+  LiDM extractor weights are (:func:`omnilidar.interop.lidm.kernel_to_ours`).
 * ``spconv`` (spconv 2.x): ``conv_input.{0,1}.{0,1}``, ``encoder.{i}.0.{0,1}``,
   blocks ``conv1``, ``bn1``, ``conv2``, ``bn2``, ``downsample.{0,1}`` (mmdet's
   ``BasicBlock``), ``decoder.{i}.0.{0,1}`` (``SparseInverseConv3d``). Weights
@@ -42,6 +42,9 @@ from __future__ import annotations
 import torch
 
 from omnilidar.errors import InputError
+from omnilidar.interop.lidm import kernel_to_ours, ours_to_kernel_shape, remap_state
+from omnilidar.segnets.build import IN_CHANNELS, build_segmentor
+from omnilidar.segnets.minkunet import DECODER_BLOCKS, WIDTHS
 
 PREFIX = "backbone."
 HEAD = "decode_head.conv_seg."
@@ -101,8 +104,6 @@ def _block(layout: str, theirs: str, ours: str, shortcut: bool) -> list[tuple[st
 def key_map(layout: str, arch: dict) -> list[tuple[str, str, str]]:
     """Every ``(mmdet3d key, our key, tensor type)`` of the network ``arch``
     (``stem``, ``encoder``, ``decoder`` widths, ``encoder_blocks``, ``spvcnn``)."""
-    from omnilidar.downstream.seg.minkunet import DECODER_BLOCKS
-
     b, m = "backbone", []
     stem, enc, dec = arch["stem"], arch["encoder"], arch["decoder"]
     for s in range(2):
@@ -140,9 +141,6 @@ def _in_channels(t: torch.Tensor, layout: str) -> int:
 
 def infer_arch(state: dict, layout: str, where=None) -> tuple[dict, dict]:
     """``(arch, spec)``: the mmdet3d network's widths and our model spec."""
-    from omnilidar.downstream.seg.minkunet import WIDTHS
-    from omnilidar.downstream.seg.models import IN_CHANNELS
-
     conv = "net.0.kernel" if layout == "torchsparse" else "0.weight"
     first = "net.0.kernel" if layout == "torchsparse" else "conv1.weight"
 
@@ -177,8 +175,6 @@ def infer_arch(state: dict, layout: str, where=None) -> tuple[dict, dict]:
 
 
 def _their_shape(ours: torch.Size, layout: str, typ: str) -> tuple[int, ...]:
-    from omnilidar.metrics.extractors.lidm_weights import ours_to_kernel_shape
-
     if not typ.startswith("conv"):
         return tuple(ours)
     if layout == "torchsparse":
@@ -190,8 +186,6 @@ def _their_shape(ours: torch.Size, layout: str, typ: str) -> tuple[int, ...]:
 
 
 def _to_ours(t: torch.Tensor, layout: str, typ: str) -> torch.Tensor:
-    from omnilidar.metrics.extractors.lidm_weights import kernel_to_ours
-
     if not typ.startswith("conv") or layout == "spconv":
         return t
     if layout == "torchsparse":
@@ -206,8 +200,6 @@ def convert_mmdet3d_state(state: dict, where=None) -> tuple[dict[str, torch.Tens
     :func:`omnilidar.downstream.seg.models.build_segmentor`. Raises InputError
     naming ``where`` and the first unknown, missing or misshapen key.
     """
-    from omnilidar.downstream.seg.models import build_segmentor
-
     layout = detect_layout(state, where)
     arch, spec = infer_arch(state, layout, where)
     mapping = key_map(layout, arch)
@@ -215,21 +207,8 @@ def convert_mmdet3d_state(state: dict, where=None) -> tuple[dict[str, torch.Tens
     if unknown:
         raise InputError(where, f"unexpected key {unknown[0]!r} for an mmdet3d {spec['backbone']} "
                                 f"{spec['width']} depth {spec['depth']} ({layout})")
-    expected = build_segmentor(spec, "torch").state_dict()
-    out: dict[str, torch.Tensor] = {}
-    for theirs, ours, typ in mapping:
-        target = expected[ours]
-        if theirs not in state:
-            if theirs.endswith("num_batches_tracked"):
-                out[ours] = torch.zeros((), dtype=torch.long)
-                continue
-            raise InputError(where, f"missing key {theirs!r} (an mmdet3d {spec['backbone']} {spec['width']} "
-                                    f"depth {spec['depth']} has it)")
-        t = state[theirs]
-        want = _their_shape(target.shape, layout, typ)
-        if tuple(t.shape) != want:
-            raise InputError(where, f"key {theirs!r} has shape {tuple(t.shape)}, expected {want}")
-        if t.is_floating_point() and not torch.isfinite(t).all():
-            raise InputError(where, f"key {theirs!r} contains NaN or Inf")
-        out[ours] = _to_ours(t.to(target.dtype), layout, typ).clone()
+    network = f"an mmdet3d {spec['backbone']} {spec['width']} depth {spec['depth']}"
+    out = remap_state(state, mapping, build_segmentor(spec, "torch").state_dict(),
+                      lambda ours, typ: _their_shape(ours, layout, typ), lambda t, typ: _to_ours(t, layout, typ),
+                      network, where)
     return out, spec
