@@ -6,7 +6,7 @@ GENERATOR = f"{DATA}/generator"
 TRAIN_GENERATOR_SHELL = (
     generator_launcher() + " train-generator --domains {{input.domains}} --prompts {{input.prompts}} "
     "--preset {preset} --settings {{params.settings:q}} --seed {{params.seed}} "
-    "--work-dir {{params.work_dir}} --out {{output}} > {{log}} 2>&1"
+    "--work-dir {{params.work_dir}} --out {{output}}{until} > {{log}} 2>&1"
 )
 SAMPLE_SHELL = (
     "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
@@ -36,12 +36,46 @@ rule encode_prompts:
         "omnilidar encode-prompts --settings {params.settings:q} --out {output} > {log} 2>&1"
 
 
-rule train_generator:
-    """Train the generator (a preset of the paper's ablation; `full` is OmniLiDAR).
-    Resumable state lives in work/generator/<preset>, which is not a declared output."""
+rule train_generator_segment:
+    """One segment of a generator training longer than its partition allows (resources.smk cuts
+    it where the partition's time limit falls): trains up to iteration `until` from the previous
+    segment's state in work/generator/<preset> and leaves its own there; the chain ends in
+    train_generator, with the weights of one uninterrupted run."""
     input:
         domains=f"{DATA}/domains/index.json",
         prompts=rules.encode_prompts.output,
+        previous=previous_generator_segment,
+    output:
+        generator_segment("{preset}", "{until}"),
+    wildcard_constraints:
+        preset="single_domain|batch_homogeneous|cdts|cdts_cdfm|cdts_dafs|full",
+        until=r"\d+",
+    params:
+        settings=settings("generator", drop=("sampling",)),
+        seed=config["seed"],
+        work_dir=lambda w: f"work/generator/{w.preset}",
+        code=code("train-generator"),
+    log:
+        "logs/generator/train_{preset}_until_{until}.log",
+    benchmark:
+        "benchmarks/out/generator/train_{preset}_until_{until}.tsv"
+    conda:
+        ENV
+    priority: GDA_CHAIN_PRIORITY
+    resources:
+        **job_resources("train_generator_segment"),
+    shell:
+        TRAIN_GENERATOR_SHELL.format(preset="{wildcards.preset}", until=" --until {wildcards.until}")
+
+
+rule train_generator:
+    """Train the generator (a preset of the paper's ablation; `full` is OmniLiDAR).
+    Resumable state lives in work/generator/<preset>, which is not a declared output; where the
+    training outlasts its partition's time limit, this is the last job of a segment chain."""
+    input:
+        domains=f"{DATA}/domains/index.json",
+        prompts=rules.encode_prompts.output,
+        previous=previous_generator_segment,
     output:
         f"{GENERATOR}/{{preset}}/model.pt",
     wildcard_constraints:
@@ -61,7 +95,7 @@ rule train_generator:
     resources:
         **job_resources("train_generator"),
     shell:
-        TRAIN_GENERATOR_SHELL.format(preset="{wildcards.preset}")
+        TRAIN_GENERATOR_SHELL.format(preset="{wildcards.preset}", until="")
 
 
 rule sample_domain:
@@ -115,7 +149,7 @@ rule train_generator_attempt:
     resources:
         **job_resources("train_generator"),
     shell:
-        TRAIN_GENERATOR_SHELL.format(preset="full")
+        TRAIN_GENERATOR_SHELL.format(preset="full", until="")
 
 
 rule sample_attempt:

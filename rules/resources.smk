@@ -296,13 +296,55 @@ def _mem_mb(work, gpus, cpus):
     return int(math.ceil(RESOURCES["mem_margin"] * mb))
 
 
+def _job_gpus(rule):
+    device = _RULES[rule][0]
+    if cluster_gpus() and (device is True or (device is not False and uses_cuda(device))):
+        return RESOURCES["generator_gpus"] if rule.startswith(("train_generator", "train_single_domain")) else 1
+    return 0
+
+
+def _segment_ends(rule, iterations, seconds_per_iteration):
+    """Where a training too long for its partition's time limit is cut into a chain of jobs that each
+    fit (the iterations each segment ends at, the last job going on to ``iterations``); [] when
+    the whole training fits, or no limit is known."""
+    limits = PARTITION_LIMITS and PARTITION_LIMITS.get(RESOURCES["partitions"]["gpu" if _job_gpus(rule) else "cpu"])
+    if not limits or _runtime(iterations * seconds_per_iteration) <= limits.max_runtime:
+        return []
+    per_job = int((limits.max_runtime - RESOURCES["setup_min"]) * 60 / (RESOURCES["margin"] * seconds_per_iteration))
+    if per_job < 1:
+        sys.exit(f"Invalid configuration: one iteration of {rule} does not fit the partition's time limit "
+                 f"({limits.max_runtime:g} minutes, resources.partition_config); raise it or lower the work")
+    return list(range(per_job, iterations, per_job))
+
+
+# The generator's training as a chain of segment jobs where it outlasts its partition's time limit
+# (rules/generator.smk): each segment asks for its own share of the time.
+GENERATOR_SEGMENT_ENDS = _segment_ends("train_generator", _GEN_TRAIN["iterations"], _train_seconds(1))
+_RULES["train_generator_segment"] = _RULES["train_generator"]
+if GENERATOR_SEGMENT_ENDS:
+    _device, _work, _, _cpus = _RULES["train_generator"]
+    _RULES["train_generator_segment"] = (_device, _work, _runtime(GENERATOR_SEGMENT_ENDS[0] * _train_seconds(1)), _cpus)
+    _RULES["train_generator"] = (_device, _work, _runtime(
+        (_GEN_TRAIN["iterations"] - GENERATOR_SEGMENT_ENDS[-1]) * _train_seconds(1)), _cpus)
+
+
+def generator_segment(preset, until):
+    """The record of the segment ending at ``until`` (rule train_generator_segment)."""
+    return f"{GENERATOR}/{preset}/segments/until_{until}.json"
+
+
+def previous_generator_segment(w):
+    """A segment's (or the final job's) predecessor in the chain: [] for the first."""
+    until = int(w.until) if hasattr(w, "until") else float("inf")
+    ends = [e for e in GENERATOR_SEGMENT_ENDS if e < until]
+    return [generator_segment(w.preset, ends[-1])] if ends else []
+
+
 def job_resources(rule):
     """Resources of one rule (see _RULES); config resources.mem_mb / resources.runtime replace them
     per rule. The request is checked against its partition when the job is created (dry runs too)."""
     device, work, runtime, cpus = _RULES[rule]
-    gpus = 0
-    if cluster_gpus() and (device is True or (device is not False and uses_cuda(device))):
-        gpus = RESOURCES["generator_gpus"] if rule in ("train_generator", "train_single_domain") else 1
+    gpus = _job_gpus(rule)
     cpus = cpus * max(1, gpus)
     mem_mb = RESOURCES["mem_mb"].get(rule, _mem_mb(work, gpus, cpus))
     runtime = RESOURCES["runtime"].get(rule, runtime)

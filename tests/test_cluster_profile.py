@@ -205,3 +205,27 @@ def test_paper_dry_run_fits_the_shipped_partition_limits(workdir):
         assert int(r["runtime"]) <= 7 * 24 * 60, rule  # max_runtime 7-00:00:00
         assert int(r["mem_mb"]) <= part["max_mem_mb"] and int(r["cpus_per_task"]) <= part["max_cpus_per_task"], rule
         assert int(r.get("gpu", 0)) <= part["max_gpu"], rule
+
+
+def test_paper_generator_training_longer_than_its_partition_runs_as_a_chain_of_segment_jobs(workdir, tmp_path):
+    """With a two-day limit on the GPU partition, the paper's ~5-day generator training is cut into
+    segment jobs that each fit; the last job writes the weights (a real chain: test_generator_segments)."""
+    parts = tmp_path / "two_days.yaml"
+    parts.write_text("partitions:\n"
+                     "  gpu: {max_runtime: '2-00:00:00', max_mem_mb: 512000, max_cpus_per_task: 64, max_gpu: 8}\n"
+                     "  cpu: {max_runtime: '7-00:00:00', max_mem_mb: 256000, max_cpus_per_task: 64, max_gpu: 0}\n")
+    overlay = tmp_path / "limits.yaml"
+    overlay.write_text(f"resources: {{partition_config: {parts}}}\n")
+    target = ("--", "data/generator/full/model.pt")
+    out = snakemake(workdir, "--dry-run", *SLURM, "--default-resources", "slurm_account=testacct", *PAPER,
+                    str(overlay), *target)
+    jobs = re.findall(r"rule (train_generator\w*):.*?output: (\S+).*?runtime=(\d+)", out.stdout, re.S)
+    segments = [(out_, int(minutes)) for rule, out_, minutes in jobs if rule == "train_generator_segment"]
+    final = [int(minutes) for rule, _, minutes in jobs if rule == "train_generator"]
+    assert len(segments) == 2 and len(final) == 1, jobs  # 7,260 minutes in jobs of at most 2,880
+    assert all(m <= 2 * 24 * 60 for _, m in segments) and final[0] <= 2 * 24 * 60
+    ends = sorted(int(re.search(r"until_(\d+)\.json", o).group(1)) for o, _ in segments)
+    assert 0 < ends[0] < ends[1] < 500_000
+    # Without the tighter limit (the shipped 7 days) the training is one job.
+    plain = snakemake(workdir, "--dry-run", *SLURM, "--default-resources", "slurm_account=testacct", *PAPER, *target)
+    assert "train_generator_segment" not in plain.stdout and "rule train_generator:" in plain.stdout

@@ -14,7 +14,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--domains", required=True, help="domains index JSON from the domain builder")
     parser.add_argument("--prompts", required=True, help="prompt cache from encode-prompts")
     parser.add_argument("--work-dir", required=True, help="resumable state (checkpoints, logs); not a declared output")
-    parser.add_argument("--out", required=True, help="final EMA weights + resolved config (.pt)")
+    parser.add_argument("--out", required=True,
+                        help="final EMA weights + resolved config (.pt); with --until, the segment's record (.json)")
+    parser.add_argument("--until", type=int, default=None,
+                        help="train only up to this iteration, leave the resumable state in --work-dir and write a "
+                             "segment record to --out (a segment of a chain that fits a partition's time limit)")
     parser.add_argument(
         "--preset",
         default=None,
@@ -30,6 +34,8 @@ def run(args) -> int:
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     if args.preset:
         settings = apply_preset(settings, args.preset)
-    summary = train_generator(settings, args.domains, args.prompts, args.work_dir, args.out, seed=args.seed)
-    print(f"trained {summary['iterations']} iterations ({summary['parameters'] / 1e6:.2f} M parameters) -> {args.out}")
+    summary = train_generator(settings, args.domains, args.prompts, args.work_dir, args.out, seed=args.seed,
+                              until=args.until)
+    what = f"segment up to iteration {args.until}" if args.until else f"{summary['iterations']} iterations"
+    print(f"trained {what} ({summary['parameters'] / 1e6:.2f} M parameters) -> {args.out}")
     return 0

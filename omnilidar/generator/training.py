@@ -37,6 +37,7 @@ import torch
 
 from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker,
                                    resumable_runner_args, resume_point, weights_only_hooks)
+from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT
 from omnilidar.generator.diffusion import epsilon_loss
@@ -201,8 +202,6 @@ def agreed_resume_point(run_dir: Path, provenance: dict, iterations: int, world:
 def check_crop_width(settings: dict) -> None:
     """training.crop_width must survive the UNet's downsampling (a crop as wide as the
     image or wider trains on full images)."""
-    from omnilidar.errors import InputError
-
     crop, width = settings["training"].get("crop_width"), settings["range_image"]["width"]
     down = 2 ** (len(settings["model"]["channel_multipliers"]) - 1)
     if crop is not None and crop < width and crop % down:
@@ -217,11 +216,16 @@ def train_generator(
     work_dir: str | Path,
     out: str | Path,
     seed: int = 0,
+    until: int | None = None,
 ) -> dict:
     """Train (or resume) the generator and write the final EMA weights + config to ``out``.
 
-    Returns a small summary (iterations, parameters, work dir). ``out`` is written
-    atomically on the main process only.
+    ``until``: one segment of a chain (see ``rules/generator.smk``): train only up to that
+    iteration, leave the resumable state (checkpoint at ``until``) in ``work_dir`` and write a
+    JSON record of the segment to ``out``; the next segment, or the full run, resumes from it.
+    The learning-rate schedule depends on the warm-up only, so a chain ends with the weights of
+    one uninterrupted run. Returns a small summary (iterations, parameters, work dir). ``out``
+    is written atomically on the main process only.
     """
     from mmengine.dist import is_main_process
     from mmengine.hooks import EMAHook
@@ -230,6 +234,9 @@ def train_generator(
     from omnilidar.io.atomic import atomic_path
 
     tr = settings["training"]
+    if until is not None and not 0 < until < tr["iterations"]:
+        raise InputError(None, f"--until {until} must lie between 0 and the {tr['iterations']} iterations to train")
+    stop = until or tr["iterations"]
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
@@ -247,7 +254,7 @@ def train_generator(
         trajectory["world_size"] = world
     provenance = job_provenance("train-generator", trajectory, seed,
                                 {"domains": domains_index, "prompts": prompts_path})
-    resume_from = agreed_resume_point(run_dir, provenance, tr["iterations"], world)
+    resume_from = agreed_resume_point(run_dir, provenance, stop, world)
     skip = checkpoint_iteration(resume_from) if resume_from else 0
 
     sampler = make_batch_sampler(
@@ -294,7 +301,7 @@ def train_generator(
         model=model,
         work_dir=str(run_dir),
         train_dataloader=loader,
-        train_cfg=dict(by_epoch=False, max_iters=tr["iterations"], val_interval=tr["iterations"] + 1),
+        train_cfg=dict(by_epoch=False, max_iters=stop, val_interval=stop + 1),
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
         default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
@@ -309,6 +316,7 @@ def train_generator(
     runner.logger.info(
         f"omnilidar generator: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
         f"{len(dataset)} scans, strategy {tr['strategy']}, {tr['iterations']} iterations"
+        + (f" (this segment up to {stop})" if until else "")
         + (f", resuming at iteration {skip} from {resume_from.name}" if resume_from else ", from scratch")
     )
     runner.train()
@@ -327,6 +335,14 @@ def train_generator(
         "resumed_from": skip,
         **cost,
     }
+    if until is not None:
+        if is_main_process():
+            record = {"segment_until": until, "provenance": provenance,
+                      **{k: v for k, v in summary.items() if k != "work_dir"}}
+            with atomic_path(out) as tmp:
+                Path(tmp).write_text(json.dumps(record, indent=1, default=str))
+        logging.getLogger("mmengine").info(f"segment up to iteration {until} done; state in {run_dir}, record {out}")
+        return summary
     if is_main_process():
         payload = {
             "format": CHECKPOINT_FORMAT,
