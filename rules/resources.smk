@@ -147,8 +147,8 @@ _RULES = {
                                                 config["generator"]["sampling"]["steps"])), 2),
     "sample_eval": (_EVAL["device"], _generator_sample_work(config["generator"]["sampling"]["batch_size"]),
                     lambda w: _runtime(sampling_seconds(config["generator"]["sampling"]["scans_per_shard"], int(w.steps))), 2),
-    # Metric extractors train on the CPU (omnilidar.metrics.extractors.training).
-    "train_extractor": (False, 8000, 6 * 60, 2),
+    # Metric extractors self-train where evaluation.extractors.training.device says (CPU by default).
+    "train_extractor": (_EVAL["extractors"]["training"]["device"], 8000, 6 * 60, 2),
     # Real and generated sets: 8 domains x (full + baseline + real).
     "generation_quality": (_EVAL["device"], 32000,
                            _evaluation_runtime(3 * len(config["generator"]["prompts"]), _EVAL["generation_quality"]["metrics"]), 2),

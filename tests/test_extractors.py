@@ -265,6 +265,25 @@ def test_self_training_runs_and_tags(tmp_path, labelled_entries, kind, arch):
         a = torch.load(out, weights_only=True)["state_dict"]
         b = torch.load(out2, weights_only=True)["state_dict"]
         assert all(torch.equal(a[k], b[k]) for k in a)
+        # The device it trains on is not part of its identity: an explicit cpu gives the same tag and weights.
+        out3 = tmp_path / f"{kind}_cpu.pt"
+        on_cpu = train_extractor(kind, arch, {**schedule, "device": "cpu"}, labelled_entries, SPEC, 0, out3,
+                                 log=lambda *_: None)
+        assert on_cpu["config_hash"] == summary["config_hash"]
+        c = torch.load(out3, weights_only=True)["state_dict"]
+        assert all(torch.equal(a[k], c[k]) for k in a)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+def test_self_training_on_cuda_without_cuda_is_one_clear_error(tmp_path, labelled_entries):
+    from omnilidar.errors import InputError
+    from omnilidar.metrics.extractors.training import train_extractor
+
+    schedule = {"max_scans": 2, "batch_size": 1, "iterations": 1, "lr": 1e-3, "weight_decay": 0.0, "device": "cuda"}
+    with pytest.raises(InputError, match="evaluation.extractors.training.device cuda"):
+        train_extractor("fpd", {"num_classes": 19}, schedule, labelled_entries, SPEC, 0, tmp_path / "x.pt",
+                        log=lambda *_: None)
+    assert not (tmp_path / "x.pt").exists()
 
 
 def test_across_domain_correlation_follows_domains_and_flags_flat_statistics():

@@ -71,4 +71,5 @@ def test_report_after_a_partial_run_holds_the_tables_made_so_far(tmp_path):
     log = out.stdout + out.stderr
     assert "Adding domain_fidelity.html" in log and "Adding domain_fidelity.png" in log
     assert "Adding data_summary" not in log and "Report created" in log  # never made: not asked for
+    assert "Missing metadata" not in log, log  # nothing said of files never made
     assert (workdir / "report.html").stat().st_size > (workdir / "empty.html").stat().st_size

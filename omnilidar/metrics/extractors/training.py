@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from omnilidar.data.range_image import RangeImageSpec, encode, project
+from omnilidar.devices import resolve_device
 from omnilidar.errors import InputError
 from omnilidar.io.semantickitti import read_label, read_points, to_train_ids
 from omnilidar.metrics.extractors.pointnet import pixel_points
@@ -57,29 +58,29 @@ def labelled_views(entries: list[dict], spec: RangeImageSpec) -> tuple[dict, np.
     return range_views(np.stack(images), spec), np.stack(labels)
 
 
-def _loss(kind: str, model, views: dict, labels: np.ndarray) -> torch.Tensor:
+def _loss(kind: str, model, views: dict, labels: np.ndarray, device=torch.device("cpu")) -> torch.Tensor:
     mask = views["mask"]
     lab = np.where(mask, labels, 0)
     if kind in ("frd", "frid"):
         img = protocol_image(views["depth"], views["xyz"], views["reflectance"], kind == "frd")
-        logits = model(normalise(torch.from_numpy(img), SENSOR_MEAN, SENSOR_STD))
-        return F.cross_entropy(logits, torch.from_numpy(lab), ignore_index=0)
+        logits = model(normalise(torch.from_numpy(img), SENSOR_MEAN, SENSOR_STD).to(device))
+        return F.cross_entropy(logits, torch.from_numpy(lab).to(device), ignore_index=0)
     if kind == "fpd":
         hist = np.stack([np.bincount(x[x > 0], minlength=NUM_IDS)[1:] for x in lab.reshape(len(lab), -1)])
         has = hist.sum(1) > 0
-        target = torch.from_numpy(hist[has] / hist[has].sum(1, keepdims=True)).float()
-        logits = model(torch.from_numpy(pixel_points(views["xyz_masked"][has])))
+        target = torch.from_numpy(hist[has] / hist[has].sum(1, keepdims=True)).float().to(device)
+        logits = model(torch.from_numpy(pixel_points(views["xyz_masked"][has])).to(device))
         return -(target * F.log_softmax(logits, 1)).sum(1).mean()
     scans, ids = [], []
     for b, pts in enumerate(views["points"]):
         keep = np.einsum("ij,ij->i", pts, pts) > 0
         scans.append(scan_inputs(pts))
         ids.append(lab[b][mask[b]][keep])
-    batch = collate(scans, ids, num_classes=NUM_IDS)
+    batch = collate(scans, ids, num_classes=NUM_IDS).to(device)
     return F.cross_entropy(model(batch), batch.point_targets, ignore_index=-1)
 
 
-def _fit(kind, model, views, labels, schedule, rng, take, log) -> tuple[list[float], float]:
+def _fit(kind, model, views, labels, schedule, rng, take, log, device) -> tuple[list[float], float]:
     """AdamW for the scheduled iterations on random batches; the losses and seconds."""
     opt = torch.optim.AdamW(model.parameters(), lr=schedule["lr"], weight_decay=schedule["weight_decay"])
     model.train()
@@ -92,7 +93,7 @@ def _fit(kind, model, views, labels, schedule, rng, take, log) -> tuple[list[flo
         bs = max(bs, 2)
     for it in range(int(schedule["iterations"])):
         idx = np.sort(rng.choice(take, bs, replace=False))
-        loss = _loss(kind, model, select(views, idx), labels[idx])
+        loss = _loss(kind, model, select(views, idx), labels[idx], device)
         if not torch.isfinite(loss):
             raise RuntimeError(f"{kind} extractor: non-finite loss at iteration {it}")
         opt.zero_grad(set_to_none=True)
@@ -107,7 +108,8 @@ def _fit(kind, model, views, labels, schedule, rng, take, log) -> tuple[list[flo
 
 def train_extractor(kind: str, arch: dict, schedule: dict, entries: list[dict], spec: RangeImageSpec, seed: int,
                     out: str | Path, log=print) -> dict:
-    """Train one extractor on labelled scans and write it to ``out``; return a summary."""
+    """Train one extractor on labelled scans (on ``schedule["device"]``, CPU by default) and write it
+    to ``out``; return a summary."""
     if not entries:
         raise InputError(None, "no labelled training scans for the extractor")
     rng = np.random.default_rng([seed, 0xE7, zlib.crc32(kind.encode())])
@@ -119,9 +121,12 @@ def train_extractor(kind: str, arch: dict, schedule: dict, entries: list[dict], 
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(rng.integers(2**62)))
         model = build_model(kind, arch, generator=gen)
-        losses, seconds = _fit(kind, model, views, labels, schedule, rng, take, log)
-    model.eval()
-    chash = config_hash({"kind": kind, "arch": arch, "schedule": schedule, "seed": seed,
+        device = resolve_device(schedule.get("device", "cpu"), "evaluation.extractors.training.device")
+        losses, seconds = _fit(kind, model.to(device), views, labels, schedule, rng, take, log, device)
+    model = model.cpu().eval()
+    # Where it trained is not what it is: the tag leaves the device out.
+    identity = {k: v for k, v in schedule.items() if k != "device"}
+    chash = config_hash({"kind": kind, "arch": arch, "schedule": identity, "seed": seed,
                          "spec": repr(spec), "scans": [Path(e["points"]).name for e in picked]})
     meta = {"loss_first": losses[0], "loss_last": float(np.mean(losses[-max(1, len(losses) // 10):])),
             "iterations": len(losses), "scans": take, "seconds": seconds}
