@@ -62,8 +62,9 @@ def test_sbatch_places_each_rule_on_its_partition_with_derived_requests(tmp_path
     (tmp_path / "wf").mkdir()
     workdir = copy_workflow(tmp_path / "wf")  # its own copy: it puts input files in place
     # First jobs of the DAG (nothing built yet), then jobs whose inputs are put in place.
-    calls = _submissions(workdir, tmp_path / "roots", ["data/generator/prompts.pt", "data/index/semantickitti.json"],
-                         ["encode_prompts", "index_dataset"], [])
+    # (index_dataset is a local rule: it runs beside Snakemake, never through sbatch.)
+    calls = _submissions(workdir, tmp_path / "roots", ["data/generator/prompts.pt", "data/domains/vehicle/shard_0"],
+                         ["encode_prompts", "build_domain"], ["data/index/semantickitti.json"])
     calls.update(_submissions(
         workdir, tmp_path / "later",
         ["data/generator/cdts/model.pt", "data/samples/Vehicle/shard_0",
@@ -72,10 +73,10 @@ def test_sbatch_places_each_rule_on_its_partition_with_derived_requests(tmp_path
         ["data/domains/index.json", "data/generator/prompts.pt", "data/generator/full/model.pt",
          "data/generator_single/Vehicle/model.pt"],
     ))
-    assert set(calls) == {"encode_prompts", "index_dataset", "train_generator", "sample_domain", "sample_eval"}
+    assert set(calls) == {"encode_prompts", "build_domain", "train_generator", "sample_domain", "sample_eval"}
     for rule in ("encode_prompts", "train_generator", "sample_domain", "sample_eval"):
         assert " -p gpu " in calls[rule] and "--gpus=1" in calls[rule], calls[rule]
-    assert " -p cpu " in calls["index_dataset"] and "--gpus" not in calls["index_dataset"]
+    assert " -p cpu " in calls["build_domain"] and "--gpus" not in calls["build_domain"]
     assert "-A testacct" in calls["train_generator"]
     # 500k iterations x 0.58 s x 1.5 + 10 min; a 500-scan DDPM-256 shard: 500 x 3.52 s x 1.5 + 10 min.
     assert " -t 7260 " in calls["train_generator"] and "--cpus-per-task=5" in calls["train_generator"]
