@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from omnilidar.generator.samplers import DDIMScheduler, DDPMScheduler, DPMSolverPlusPlus2MScheduler, make_scheduler
+from omnilidar.generator.samplers import (SAMPLER_NAMES, SAMPLERS, DDIMScheduler, DDPMScheduler,
+                                         DPMSolverPlusPlus2MScheduler, make_scheduler, time_grid)
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight, predict_x0
 
 S = CosineLogSNRSchedule()
@@ -61,7 +62,7 @@ def test_x0_recovery_where_alpha_is_tiny():
     assert torch.isfinite(inf_eps).all()
 
 
-@pytest.mark.parametrize("name", ["ddpm", "ddim", "dpmpp_2m"])
+@pytest.mark.parametrize("name", ["ddpm", "ddim", "dpmpp_2m", "dpmpp_3m", "unipc", "unipc_karras", "dpmpp_3m_logsnr"])
 @pytest.mark.parametrize("steps", [1, 2, 7])
 def test_samplers_cover_t1_to_t0_and_stay_finite(name, steps):
     sched = make_scheduler(name)
@@ -83,7 +84,7 @@ def test_samplers_cover_t1_to_t0_and_stay_finite(name, steps):
 
 def test_oracle_epsilon_recovers_the_data_with_every_sampler():
     x0 = torch.rand(2, 2, 4, 8, generator=torch.Generator().manual_seed(1)) * 1.6 - 0.8
-    for name in ("ddpm", "ddim", "dpmpp_2m"):
+    for name in SAMPLER_NAMES:
         sched = make_scheduler(name)
         sched.set_timesteps(10)
         g = [torch.Generator().manual_seed(i) for i in range(2)]
@@ -150,3 +151,65 @@ def test_unknown_sampler_and_bad_steps():
         d = DDIMScheduler()
         d.set_timesteps(2)
         d.step(torch.zeros(1, 2, 2, 2), 0.3, torch.zeros(1, 2, 2, 2))
+
+
+# Gaussian data N(MU, SD^2): the exact denoiser is known, and the probability-flow ODE keeps
+# (x_t - alpha MU) / sqrt(alpha^2 SD^2 + sigma^2) constant, so every solver's error is measurable.
+MU, SD = 0.3, 0.2
+
+
+def _gaussian_ode_error(name: str, steps: int) -> float:
+    sched = make_scheduler(name, clip_sample=False)
+    sched.set_timesteps(steps)
+    x1 = torch.randn(2048, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    x = x1.clone()
+    for t in sched.timesteps:
+        a, s = (v.double() for v in alpha_sigma(sched.logsnr_at(t).double()))
+        x0 = MU + a * SD**2 / (a**2 * SD**2 + s**2) * (x - a * MU)
+        x = sched.step(((x - a * x0) / s).float(), t, x.float()).prev_sample.double()
+    (a1, s1), (a0, s0) = (alpha_sigma(torch.tensor(v, dtype=torch.float64)) for v in (-15.0, 15.0))
+    exact = a0 * MU + torch.sqrt(a0**2 * SD**2 + s0**2) * (x1 - a1 * MU) / torch.sqrt(a1**2 * SD**2 + s1**2)
+    return float((x - exact).abs().max())
+
+
+@pytest.mark.parametrize("name,order", [("ddim_logsnr", 1), ("dpmpp_2m_logsnr", 2), ("dpmpp_3m_logsnr", 2),
+                                        ("unipc_logsnr", 3)])
+def test_solvers_converge_at_their_order_on_gaussian_data(name, order):
+    """Doubling the steps divides the error by about 2^order (UniPC-2 with its corrector is third
+    order; DPM-Solver++ 3M's first-order last step holds it at second order)."""
+    coarse, fine = _gaussian_ode_error(name, 64), _gaussian_ode_error(name, 128)
+    assert coarse / fine > 0.8 * 2**order, (coarse, fine)
+
+
+def test_higher_order_solvers_beat_ddim_at_a_small_budget():
+    ddim = _gaussian_ode_error("ddim_logsnr", 16)
+    for name in ("dpmpp_2m_logsnr", "dpmpp_3m_logsnr", "unipc_logsnr"):
+        assert _gaussian_ode_error(name, 16) < ddim / 3, name
+
+
+@pytest.mark.parametrize("spacing", ["uniform", "logsnr", "karras"])
+def test_time_grids_run_from_1_to_0_and_karras_is_densest_near_the_data(spacing):
+    schedule = CosineLogSNRSchedule()
+    grid = time_grid(schedule, 12, spacing)
+    assert grid[0] == 1.0 and grid[-1] == 0.0 and len(grid) == 13 and (grid.diff() < 0).all()
+    if spacing == "karras":  # sigma steps shrink toward the data: the last sigma step is the smallest
+        sigma = torch.exp(-0.5 * schedule.logsnr(grid))
+        steps = -sigma.diff()
+        assert steps[-1] < steps[0] / 100
+
+
+def test_sampler_names_and_the_schemas_agree():
+    import yaml
+
+    from workflow_helpers import ROOT
+
+    assert {n.rsplit("_", 1)[0] if n.endswith(("_logsnr", "_karras")) else n for n in SAMPLER_NAMES} == set(SAMPLERS)
+    for schema, path in (("generator", ("properties", "sampling", "properties", "sampler")),
+                         ("evaluation", ("properties", "sampler"))):
+        node = yaml.safe_load((ROOT / "workflow" / "schemas" / f"{schema}.schema.yaml").read_text())
+        for key in path:
+            node = node[key]
+        assert node["enum"] == list(SAMPLER_NAMES), schema
+    assert make_scheduler("dpmpp_3m_karras").spacing == "karras" and make_scheduler("unipc").spacing == "uniform"
+    with pytest.raises(ValueError, match="unknown sampler"):
+        make_scheduler("unipc_cosine")
