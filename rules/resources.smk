@@ -6,6 +6,7 @@
 # (data-loader workers + 1). Every job's request is checked against its partition's limits
 # (resources.partition_config, the SLURM executor plugin's own partition file format) when the
 # DAG is built, dry runs included. Rules use `resources: **job_resources("name")`.
+import json
 import math
 import os
 import sys
@@ -125,6 +126,49 @@ _DETECTOR_WORK = Work(_units_mb(_DET["schedule"]["batch_size"] * _DET["voxels"][
                                 * _DET["voxels"]["max_points_per_voxel"] * 32, "detector"))
 _EVAL = config["evaluation"]
 _DOWN_H = RESOURCES["rates"]["downstream_hours"] * 60
+
+
+def _json_scans(path, split):
+    """Scans of a subset JSON (its entries) or of one split of a dataset index; None while the
+    file is not there yet (a dry run before the data is indexed)."""
+    try:
+        with open(path) as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    if "entries" in doc:
+        return len(doc["entries"])
+    return len(doc.get("splits", {}).get(split, []))
+
+
+def _generated_scans(dirs):
+    return sum(len(os.listdir(os.path.join(d, "velodyne"))) for d in dirs if os.path.isdir(os.path.join(d, "velodyne")))
+
+
+def _training_runtime(schedule, device, kind, split=lambda w: "train", fraction=lambda w: 1.0):
+    """Minutes of a downstream training from its schedule: steps (schedule.iterations, or epochs
+    over the training scans) x batch x seconds per scan and step on the job's device
+    (resources.rates.<kind>_scan_step_s on a GPU, <kind>_scan_step_cpu_s on a CPU). The scans are
+    counted in the job's subset or index (``fraction`` of ``split``) plus its generated scans
+    when those files exist; before they do (a dry run on a fresh clone),
+    rates.downstream_hours stands in for an epoch-based schedule."""
+    def runtime(wildcards, input):
+        steps = schedule["iterations"]
+        if steps is None:
+            source = getattr(input, "subset", None) or getattr(input, "index", None)
+            scans = _json_scans(source, split(wildcards)) if source else None
+            if scans is None:
+                return int(_DOWN_H)
+            samples = getattr(input, "samples", [])
+            samples = [samples] if isinstance(samples, str) else samples
+            scans = math.ceil(scans * fraction(wildcards)) + _generated_scans(samples)
+            steps = schedule["epochs"] * math.ceil(scans / schedule["batch_size"])
+        on_gpu = cluster_gpus() and uses_cuda(device)
+        rate = RESOURCES["rates"][f"{kind}_scan_step_s" if on_gpu else f"{kind}_scan_step_cpu_s"]
+        return _runtime(steps * schedule["batch_size"] * rate)
+
+    return runtime
+_STUDENT_RUNTIME = _training_runtime(_DOWN["schedule"], _DOWN["device"], "segmentor")
 # rule: (device setting that decides the GPU request: a value, True = always, False = never;
 #        mem_mb, runtime in minutes (a number or a function of the wildcards), cpus_per_task)
 _RULES = {
@@ -170,19 +214,27 @@ _RULES = {
     "simulate_pool": (False, 3000, 60, 1),
     # Importing a user's checkpoint is a small CPU job; training the labeler is the long GPU one.
     "train_labeler": ((False, 4000, 15, 1) if config["downstream"]["labeler"]["checkpoint"] else
-                      (_LABELER["device"], _LABELER_WORK, _DOWN_H, _downstream_workers("labeler", "schedule"))),
+                      (_LABELER["device"], _LABELER_WORK,
+                       _training_runtime(_LABELER["schedule"], _LABELER["device"], "segmentor"),
+                       _downstream_workers("labeler", "schedule"))),
     "pseudo_label": (_LABELER["device"], _segmentor_work(_LABELER["batch_size"], None, _LABELER_MODEL, True), 60, 2),
-    "train_supervised": (_DOWN["device"], _STUDENT_WORK, _DOWN_H, _downstream_workers("schedule")),
-    "train_gda": (_DOWN["device"], _STUDENT_WORK, _DOWN_H, _downstream_workers("schedule")),
-    "train_gda_curve": (_DOWN["device"], _STUDENT_WORK, _DOWN_H, _downstream_workers("schedule")),
+    "train_supervised": (_DOWN["device"], _STUDENT_WORK, _STUDENT_RUNTIME, _downstream_workers("schedule")),
+    "train_gda": (_DOWN["device"], _STUDENT_WORK, _STUDENT_RUNTIME, _downstream_workers("schedule")),
+    "train_gda_curve": (_DOWN["device"], _STUDENT_WORK, _STUDENT_RUNTIME, _downstream_workers("schedule")),
     "evaluate_segmentor": (_DOWN["device"], _segmentor_work(_DOWN["evaluation"]["batch_size"], None, _DOWN["models"], True),
                            60, 2),
     "gda_result": (False, 1000, 10, 1),
     "gda_curve": (False, 1000, 10, 1),
     # Detection (rules/detection.smk): importing a user's labeler is a small CPU job.
-    "train_box_labeler": (_DET["device"], _DETECTOR_WORK, _DOWN_H, _downstream_workers("det", "labeler", "schedule")),
+    "train_box_labeler": (_DET["device"], _DETECTOR_WORK,
+                          _training_runtime(_DET["labeler"]["schedule"], _DET["device"], "detector",
+                                            split=lambda w: f"{w.platform}_train"),
+                          _downstream_workers("det", "labeler", "schedule")),
     "pseudo_box": (_DET["device"], Work(2000), 60, 2),
-    "train_detector": (_DET["device"], _DETECTOR_WORK, _DOWN_H, _downstream_workers("det", "schedule")),
+    "train_detector": (_DET["device"], _DETECTOR_WORK,
+                       _training_runtime(_DET["schedule"], _DET["device"], "detector", split=lambda w: f"{w.platform}_train",
+                                         fraction=lambda w: int(w.pct) / 100),
+                       _downstream_workers("det", "schedule")),
     "evaluate_detector": (_DET["device"], Work(2000), 60, 2),
     "pi3det_result": (False, 1000, 10, 1),
 }
@@ -350,8 +402,11 @@ def job_resources(rule):
     runtime = RESOURCES["runtime"].get(rule, runtime)
     partition = RESOURCES["partitions"]["gpu" if gpus else "cpu"]
 
-    def checked_mem_mb(wildcards):
-        check_partition_fit(rule, partition, mem_mb, cpus, gpus, runtime(wildcards) if callable(runtime) else runtime)
+    def checked_mem_mb(wildcards, input):
+        minutes = runtime
+        if callable(runtime):
+            minutes = runtime(wildcards, input) if runtime.__code__.co_argcount == 2 else runtime(wildcards)
+        check_partition_fit(rule, partition, mem_mb, cpus, gpus, minutes)
         return mem_mb
 
     out = {"mem_mb": checked_mem_mb, "runtime": runtime, "cpus_per_task": cpus, "slurm_partition": partition}

@@ -230,3 +230,29 @@ def test_paper_generator_training_longer_than_its_partition_runs_as_a_chain_of_s
     # Without the tighter limit (the shipped 7 days) the training is one job.
     plain = snakemake(workdir, "--dry-run", *SLURM, "--default-resources", "slurm_account=testacct", *PAPER, *target)
     assert "train_generator_segment" not in plain.stdout and "rule train_generator:" in plain.stdout
+
+
+def test_downstream_training_runtimes_follow_their_schedules(tmp_path):
+    """Epoch-based trainings ask for epochs x steps per epoch x batch x seconds per scan-step
+    (+ margin and set-up), counting the scans in their index or subset once those exist."""
+    import json
+    import math
+
+    (tmp_path / "wf").mkdir()
+    workdir = copy_workflow(tmp_path / "wf")
+    target = ("--", "results/semkitti_1pct.json")
+    before = _dry_run_resources(workdir, *PAPER, *target)
+    assert int(before["train_labeler"]["runtime"]) == 600  # nothing indexed yet: rates.downstream_hours
+
+    index, subset = workdir / "data/index/semantickitti.json", workdir / "data/subsets/semantickitti_1pct.json"
+    index.parent.mkdir(parents=True)
+    subset.parent.mkdir(parents=True)
+    index.write_text(json.dumps({"splits": {"train": [{}] * 19130, "val": [{}] * 4071}}))
+    subset.write_text(json.dumps({"entries": [{}] * 191}))
+    after = _dry_run_resources(workdir, *PAPER, *target)
+
+    def minutes(scans, epochs=15, batch=16, rate=0.09):  # paper.yaml's schedule, rates' defaults
+        return math.ceil(10 + 1.5 * epochs * math.ceil(scans / batch) * batch * rate / 60)
+
+    assert int(after["train_labeler"]["runtime"]) == minutes(19130)  # ~11 h: 100 % of the train split
+    assert int(after["train_supervised"]["runtime"]) == minutes(191)  # 1 %: minutes, not a flat 10 h
