@@ -62,8 +62,7 @@ onerror:
 rule all:
     default_target: True
     input:
-        "results/semkitti_1pct.json",
-        "results/data_summary.json",
+        default_results("results/semkitti_1pct.json", "results/data_summary.json"),
         report_files(),  # what `snakemake --report report.html` gathers: rules/report.smk
     params:
         captions=report_captions(),

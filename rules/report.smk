@@ -45,6 +45,17 @@ def report_captions():
     return captions
 
 
+# `snakemake --report` builds the DAG of its target (`all` by default) and warns "Missing metadata"
+# for every output of every job in it, made or not. While reporting, `all` therefore names only
+# the default results that exist, so the report speaks of what was made.
+REPORTING = any(arg == "--report" or arg.startswith("--report=") for arg in sys.argv)
+
+
+def default_results(*paths):
+    """The default target's results; while reporting, only those that exist."""
+    return [p for p in paths if not REPORTING or os.path.exists(p)]
+
+
 def report_files():
     """The folders of result tables and figures, flagged for the report, where they exist."""
     flagged = []
