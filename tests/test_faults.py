@@ -91,6 +91,9 @@ def _kill_snakemake(wd: Path, cfg, rng: random.Random) -> str | None:
     except subprocess.TimeoutExpired:
         os.killpg(run.pid, signal.SIGKILL)
         run.wait(timeout=60)
+        # A killed Snakemake leaves its lock when it had taken it: the user unlocks, as
+        # docs/troubleshooting.md says, and reruns.
+        snakemake(wd, "--unlock", *TARGETS, *cfg)
         return f"SIGKILL of Snakemake and its jobs after {delay:.1f} s"
 
 
