@@ -90,9 +90,11 @@ def workdir(tmp_path_factory):
 def test_snakemake_command_runs_as_written(workdir, tmp_path, page, cmd, yaml_block):
     args = _snakemake_part(cmd)
     for i, arg in enumerate(args):
-        # A config file the page has the reader write: the page's YAML block (or its `echo ... >` line).
+        # A config file the page has the reader write: the page's YAML block before the command.
         if arg.endswith(".yaml") and not (workdir / arg).exists() and not Path(arg).is_absolute():
             assert yaml_block, f"{page}: {arg} is neither shipped nor shown"
+            if "../shared/" in yaml_block and not (ROOT.parent / "shared").is_dir():
+                pytest.skip(f"{arg} lists real scans from ../shared, which this clone has not beside it")
             args[i] = str(tmp_path / arg)
             Path(args[i]).write_text(yaml_block.replace("../shared/", f"{ROOT.parent}/shared/"))
     trains = not any(a in args for a in ("--unlock", "--report", "-n", "--dry-run"))
