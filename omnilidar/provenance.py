@@ -166,7 +166,8 @@ _FACTS_FORMAT = 1
 
 
 def _facts_cache_dir() -> Path:
-    base = os.environ.get("OMNILIDAR_CACHE_DIR") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "omnilidar"
+    base = os.environ.get("OMNILIDAR_CACHE_DIR") or \
+        Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "omnilidar"
     return Path(base) / f"ast-py{sys.version_info[0]}.{sys.version_info[1]}-v{_FACTS_FORMAT}"
 
 

@@ -168,9 +168,11 @@ def _training_runtime(schedule, device, kind, split=lambda w: "train", fraction=
         return _runtime(steps * schedule["batch_size"] * rate)
 
     return runtime
+
+
 _STUDENT_RUNTIME = _training_runtime(_DOWN["schedule"], _DOWN["device"], "segmentor")
 # rule: (device setting that decides the GPU request: a value, True = always, False = never;
-#        mem_mb, runtime in minutes (a number or a function of the wildcards), cpus_per_task)
+#        mem_mb, runtime in minutes (a number or a function of the wildcards and input), cpus_per_task)
 _RULES = {
     "synthesize": (False, 2000, 30, 1),
     "index_dataset": (False, 1000, 10, 1),
@@ -190,7 +192,8 @@ _RULES = {
                       _runtime(sampling_seconds(config["generator"]["sampling"]["scans_per_shard"],
                                                 config["generator"]["sampling"]["steps"])), 2),
     "sample_eval": (_EVAL["device"], _generator_sample_work(config["generator"]["sampling"]["batch_size"]),
-                    lambda w: _runtime(sampling_seconds(config["generator"]["sampling"]["scans_per_shard"], int(w.steps))), 2),
+                    lambda wildcards, input: _runtime(sampling_seconds(
+                        config["generator"]["sampling"]["scans_per_shard"], int(wildcards.steps))), 2),
     # Metric extractors self-train where evaluation.extractors.training.device says (CPU by default).
     "train_extractor": (_EVAL["extractors"]["training"]["device"], 8000, 6 * 60, 2),
     # Real and generated sets: 8 domains x (full + baseline + real).
@@ -403,10 +406,7 @@ def job_resources(rule):
     partition = RESOURCES["partitions"]["gpu" if gpus else "cpu"]
 
     def checked_mem_mb(wildcards, input):
-        minutes = runtime
-        if callable(runtime):
-            minutes = runtime(wildcards, input) if runtime.__code__.co_argcount == 2 else runtime(wildcards)
-        check_partition_fit(rule, partition, mem_mb, cpus, gpus, minutes)
+        check_partition_fit(rule, partition, mem_mb, cpus, gpus, runtime(wildcards, input) if callable(runtime) else runtime)
         return mem_mb
 
     out = {"mem_mb": checked_mem_mb, "runtime": runtime, "cpus_per_task": cpus, "slurm_partition": partition}

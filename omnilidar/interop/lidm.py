@@ -254,11 +254,12 @@ def infer_arch(state: dict, kind: str, where) -> tuple[dict, list[int]]:
                             f"{'MinkowskiNet' if kind == 'fsvd' else 'SPVCNN'} widths of another cr are not supported")
 
 
-def _network(kind: str, arch: dict) -> torch.nn.Module:
-    """Our network for a converted FSVD (MinkUNet) or FPVD (SPVCNN) ``arch``."""
+def sparse_extractor(kind: str, arch: dict, generator: torch.Generator | None = None) -> torch.nn.Module:
+    """Our FSVD (MinkUNet) or FPVD (SPVCNN) network for ``arch`` (width, depth, num_classes), on
+    the protocol's 4 input channels [x, y, z, -1]."""
     return build_segmentor({"backbone": "minkunet" if kind == "fsvd" else "spvcnn", "in_channels": 4,
                             "num_classes": arch.get("num_classes", 19), "width": arch["width"],
-                            "depth": arch.get("depth", 18)}, "torch")
+                            "depth": arch.get("depth", 18)}, "torch", generator=generator)
 
 
 def remap_state(state: dict, mapping, expected: dict, their_shape, to_ours, network: str,
@@ -291,7 +292,7 @@ def convert_lidm_state(state: dict, kind: str, where=None) -> tuple[dict[str, to
 
     Returns ``(our_state_dict, arch)`` where ``arch`` (``width``, ``depth``,
     ``num_classes``) builds the matching network with
-    :func:`omnilidar.metrics.extractors.weights.build_model`. Raises
+    :func:`sparse_extractor`. Raises
     InputError naming ``where`` and the first unknown, missing or misshapen key.
     """
     if kind not in KINDS:
@@ -315,7 +316,7 @@ def convert_lidm_state(state: dict, kind: str, where=None) -> tuple[dict[str, to
         return kernel_to_ours(t, int(typ[4:])) if typ.startswith("conv") else t
 
     network = f"a {'MinkowskiNet' if kind == 'fsvd' else 'SPVCNN'} with widths {cs}"
-    out = remap_state(state, mapping, _network(kind, arch).state_dict(), their_shape, to_ours, network, where)
+    out = remap_state(state, mapping, sparse_extractor(kind, arch).state_dict(), their_shape, to_ours, network, where)
     return out, arch
 
 
@@ -336,7 +337,7 @@ def write_converted(kind: str, src: str | Path, dst: str | Path) -> dict:
     The output is checked by loading it strictly into the network first.
     """
     state, arch = read_lidm_file(kind, src)
-    _network(kind, arch).load_state_dict(state, strict=True)
+    sparse_extractor(kind, arch).load_state_dict(state, strict=True)
     with atomic_path(dst) as tmp:
         torch.save(state, tmp)
     return arch

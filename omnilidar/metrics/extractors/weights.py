@@ -41,13 +41,11 @@ import yaml
 
 from omnilidar.errors import InputError
 from omnilidar.interop import lidm
-from omnilidar.interop.lidm import load_checkpoint
 from omnilidar.io.atomic import atomic_path
 from omnilidar.metrics.extractors import KINDS, METRIC_NAMES
 from omnilidar.metrics.extractors.pointnet import PointNet, PointNetExtractor
 from omnilidar.metrics.extractors.rangenet import SENSOR_MEAN, SENSOR_STD, RangeNet, RangeNetExtractor
 from omnilidar.metrics.extractors.sparse_features import SparseExtractor
-from omnilidar.segnets.build import build_segmentor
 from omnilidar.segnets.minkunet import WIDTHS
 
 FORMAT = "omnilidar-extractor/1"
@@ -100,9 +98,7 @@ def build_model(kind: str, arch: dict, generator: torch.Generator | None = None)
         return RangeNet(arch["in_channels"], arch.get("num_classes", 20), arch["depth"], arch["width"])
     if kind == "fpd":
         return PointNet(arch["num_classes"])
-    return build_segmentor({"backbone": "minkunet" if kind == "fsvd" else "spvcnn", "in_channels": 4,
-                            "num_classes": arch.get("num_classes", 19), "width": arch["width"],
-                            "depth": arch.get("depth", 18)}, "torch", generator=generator)
+    return lidm.sparse_extractor(kind, arch, generator)
 
 
 def wrap(kind: str, model: torch.nn.Module, mean=SENSOR_MEAN, std=SENSOR_STD):
@@ -166,7 +162,7 @@ def load_extractor(kind: str, path: str | Path) -> LoadedExtractor:
     payload = None
     if path.is_file() and not path.name.endswith((".tar.gz", ".tgz", ".tar")):
         if kind in ("fsvd", "fpvd"):  # LiDM's Lightning checkpoints need stand-ins for unknown classes
-            payload = load_checkpoint(path)
+            payload = lidm.load_checkpoint(path)
         else:
             try:
                 payload = torch.load(path, map_location="cpu", weights_only=True)
