@@ -50,3 +50,14 @@ def test_segment_chain_equals_an_uninterrupted_generator_training(tmp_path):
     assert segments == ["until_2.json", "until_4.json"]
     assert "resuming at iteration 2" in (chained / "logs/generator/train_full_until_4.log").read_text()
     assert planned_jobs(chained, MODEL, *chain) == {}
+
+    # A setting that changes what a step computes reruns the whole chain from scratch (the work
+    # directory's state belongs to the old settings) and changes the weights.
+    (tmp_path / "run.yaml").write_text(RUN.replace("checkpoint_interval: 2", "checkpoint_interval: 2, lr: 0.001"))
+    assert {k: v for k, v in planned_jobs(chained, MODEL, *chain).items() if k.startswith("train")} == \
+        {"train_generator_segment": 2, "train_generator": 1}
+    snakemake(chained, *chain, "--", MODEL)
+    first_segment = (chained / "logs/generator/train_full_until_2.log").read_text()
+    assert "from scratch" in first_segment and "resuming at" not in first_segment
+    c = torch.load(chained / MODEL, map_location="cpu", weights_only=False)
+    assert not all(torch.equal(b["state_dict"][k], c["state_dict"][k]) for k in b["state_dict"])

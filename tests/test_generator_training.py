@@ -210,3 +210,13 @@ def test_training_on_azimuth_windows_gives_a_full_sweep_generator(tmp_path):
     vehicle = torch.load(prompts, weights_only=True)["domains"]["Vehicle"]
     images = generate(denoiser, 0, vehicle["tokens"][0], vehicle["mask"][0], [0, 1], (16, 64), steps=2)
     assert images.shape == (2, 2, 16, 64) and torch.isfinite(images).all()
+
+
+@pytest.mark.parametrize("until", [0, 3, 7])
+def test_a_segment_must_end_inside_the_training(trained, tmp_path, until):
+    from omnilidar.errors import InputError
+
+    root, settings, index, prompts, _ = trained  # 3 iterations
+    with pytest.raises(InputError, match=f"--until {until} must lie between 0 and the 3 iterations"):
+        train_generator(settings, index, prompts, tmp_path / "work", tmp_path / "seg.json", seed=3, until=until)
+    assert not (tmp_path / "seg.json").exists() and not (tmp_path / "work").exists()
