@@ -47,11 +47,27 @@ def test_voxel_cap_is_random_but_reproducible(crop):
     full = voxelize(crop)
     a = voxelize(crop, max_voxels=1000, rng=np.random.default_rng(3))
     b = voxelize(crop, max_voxels=1000, rng=np.random.default_rng(3))
+    c = voxelize(crop, max_voxels=1000, rng=np.random.default_rng(4))
     assert full.num_voxels > 1000 and a.num_voxels == 1000
     assert np.array_equal(a.coords, b.coords) and np.array_equal(a.point_to_voxel, b.point_to_voxel)
+    assert not np.array_equal(a.coords, c.coords)
     kept = a.point_to_voxel >= 0
     assert np.array_equal(a.coords[a.point_to_voxel[kept]], full.coords[full.point_to_voxel[kept]])
     assert (~kept).any()
+
+
+def test_voxel_cap_crops_an_azimuth_sector_and_keeps_its_density(crop):
+    """Every voxel inside the kept sector stays (no thinning); none outside it is kept."""
+    full = voxelize(crop)
+    capped = voxelize(crop, max_voxels=full.num_voxels // 3, rng=np.random.default_rng(5))
+    kept = np.zeros(full.num_voxels, bool)
+    kept[np.unique(full.point_to_voxel[capped.point_to_voxel >= 0])] = True
+    assert kept.sum() == capped.num_voxels
+    xy = crop[full.first_point, :2].astype(np.float64)
+    azimuth = np.arctan2(xy[:, 1], xy[:, 0])
+    in_order = kept[np.argsort(azimuth, kind="stable")]
+    # one contiguous run of kept voxels around the circle: exactly one kept -> dropped step
+    assert np.count_nonzero(in_order & ~np.roll(in_order, -1)) == 1
 
 
 def test_voxel_labels_majority_ignoring_zero():

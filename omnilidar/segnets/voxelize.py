@@ -3,9 +3,9 @@
 Each voxel (0.05 m by default) takes the features of its FIRST point in file
 order (mmdet3d's MinkUNet convention). Every point keeps the index of its voxel
 so that voxel predictions map back to every point. During training the number
-of voxels may be capped (80k in the reference schedule); the voxels kept are a
-random subset drawn from an explicit generator, and points of dropped voxels
-are marked -1.
+of voxels may be capped (80k in the reference schedule); the voxels kept are an
+azimuth crop around a direction drawn from an explicit generator, and points of
+dropped voxels are marked -1.
 """
 
 from __future__ import annotations
@@ -76,9 +76,11 @@ def voxelize(
 ) -> Voxelization:
     """First-point-per-voxel voxelisation of one scan.
 
-    ``points``: ``(N, >=3)`` with x, y, z first. ``max_voxels`` caps the voxel
-    count by keeping a random subset (needs ``rng``). ``path`` names the scan in
-    error messages.
+    ``points``: ``(N, >=3)`` with x, y, z first, in the sensor's frame. ``max_voxels``
+    caps the voxel count with a random azimuth crop (needs ``rng``): the voxels
+    nearest in azimuth to a random direction are kept, so the crop keeps the scan's
+    density and neighbourhoods (thinning a random subset would teach a sparser sensor
+    than the one evaluated). ``path`` names the scan in error messages.
     """
     points = _check_points(points, path)
     if not voxel_size > 0:
@@ -96,12 +98,20 @@ def voxelize(
     if max_voxels is not None and len(uniq) > max_voxels:
         if rng is None:
             raise ValueError("max_voxels needs an explicit np.random.Generator")
-        keep = np.sort(rng.choice(len(uniq), size=int(max_voxels), replace=False))
+        keep = azimuth_crop(xyz[first, :2], int(max_voxels), rng)
         remap = np.full(len(uniq), -1, np.int64)
         remap[keep] = np.arange(len(keep))
         inverse = remap[inverse]
         coords, first = coords[keep], first[keep]
     return Voxelization(coords, first.astype(np.int64), inverse.astype(np.int64), origin, float(voxel_size))
+
+
+def azimuth_crop(xy: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Sorted indices of the ``count`` rows of ``xy`` nearest in azimuth to a random direction."""
+    centre = rng.uniform(-np.pi, np.pi)
+    offset = np.arctan2(xy[:, 1], xy[:, 0]) - centre
+    distance = np.abs(np.arctan2(np.sin(offset), np.cos(offset)))  # wrapped to [0, pi]
+    return np.sort(np.argsort(distance, kind="stable")[:count])
 
 
 def voxel_labels(point_labels: np.ndarray, vox: Voxelization, num_classes: int) -> np.ndarray:
