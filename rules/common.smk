@@ -256,9 +256,15 @@ def weights_args(weights):
     return " ".join(f"--weights {k}={v}" for k, v in weights.items())
 
 
+def sampling_checkpoint(preset):
+    """What sample_domain samples: the trained generator, or its distilled student."""
+    name = "student.pt" if config["generator"]["sampling"]["student"] else "model.pt"
+    return f"{DATA}/generator/{preset}/{name}"
+
+
 def single_domain_settings(domain):
     """The generator section with the single_domain preset's domain (and optional iterations) set."""
-    gen = json.loads(settings("generator", drop=("sampling",)))
+    gen = json.loads(settings("generator", drop=("sampling", "distillation")))
     gen["training"]["single_domain"] = domain
     if EVAL["generation_quality"]["baseline_iterations"]:
         gen["training"]["iterations"] = EVAL["generation_quality"]["baseline_iterations"]

@@ -44,5 +44,6 @@ def eval_sampling_settings(sampler, steps):
     steps, batch and device."""
     gen = json.loads(settings("generator"))
     ev = config["evaluation"]
-    gen["sampling"].update(sampler=sampler, steps=int(steps), batch_size=ev["batch_size"], device=ev["device"])
+    gen["sampling"].update(sampler=sampler, steps=int(steps), batch_size=ev["batch_size"], device=ev["device"],
+                           student=False)
     return json.dumps(gen, sort_keys=True)

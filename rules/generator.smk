@@ -51,7 +51,7 @@ rule train_generator_segment:
         preset="single_domain|batch_homogeneous|cdts|cdts_cdfm|cdts_dafs|full",
         until=r"\d+",
     params:
-        settings=settings("generator", drop=("sampling",)),
+        settings=settings("generator", drop=("sampling", "distillation")),
         seed=config["seed"],
         work_dir=lambda w: f"work/generator/{w.preset}",
         code=code("train-generator"),
@@ -81,7 +81,7 @@ rule train_generator:
     wildcard_constraints:
         preset="single_domain|batch_homogeneous|cdts|cdts_cdfm|cdts_dafs|full",
     params:
-        settings=settings("generator", drop=("sampling",)),
+        settings=settings("generator", drop=("sampling", "distillation")),
         seed=config["seed"],
         work_dir=lambda w: f"work/generator/{w.preset}",
         code=code("train-generator"),
@@ -98,10 +98,43 @@ rule train_generator:
         TRAIN_GENERATOR_SHELL.format(preset="{wildcards.preset}", until="")
 
 
-rule sample_domain:
-    """One shard of generated scans of one domain (range images + SemanticKITTI points)."""
+rule distill_generator:
+    """Progressive distillation of the trained generator into a student that samples in a few DDIM
+    steps (generator.distillation); resumable state in work/generator/<preset>_student.
+    generator.sampling.student: true makes sample_domain use it."""
     input:
-        checkpoint=f"{GENERATOR}/full/model.pt",
+        teacher=f"{GENERATOR}/{{preset}}/model.pt",
+        domains=f"{DATA}/domains/index.json",
+        prompts=rules.encode_prompts.output,
+    output:
+        f"{GENERATOR}/{{preset}}/student.pt",
+    wildcard_constraints:
+        preset="single_domain|batch_homogeneous|cdts|cdts_cdfm|cdts_dafs|full",
+    params:
+        settings=settings("generator", drop=("sampling",)),
+        seed=config["seed"],
+        work_dir=lambda w: f"work/generator/{w.preset}_student",
+        code=code("distill-generator"),
+    log:
+        "logs/generator/distill_{preset}.log",
+    benchmark:
+        "benchmarks/out/generator/distill_{preset}.tsv"
+    conda:
+        ENV
+    priority: GDA_CHAIN_PRIORITY
+    resources:
+        **job_resources("distill_generator"),
+    shell:
+        "omnilidar distill-generator --teacher {input.teacher} --domains {input.domains} --prompts {input.prompts} "
+        "--preset {wildcards.preset} --settings {params.settings:q} --seed {params.seed} "
+        "--work-dir {params.work_dir} --out {output} > {log} 2>&1"
+
+
+rule sample_domain:
+    """One shard of generated scans of one domain (range images + SemanticKITTI points), from the
+    generator or, with generator.sampling.student, from its distilled student."""
+    input:
+        checkpoint=sampling_checkpoint("full"),
         prompts=rules.encode_prompts.output,
     output:
         directory(f"{DATA}/samples/{{domain}}/shard_{{shard}}"),
@@ -109,7 +142,7 @@ rule sample_domain:
         domain=r"[^/]+",
         shard=r"\d+",
     params:
-        settings=settings("generator"),
+        settings=settings("generator", drop=("distillation",)),
         seed=config["seed"],
         code=code("sample"),
     log:
@@ -136,7 +169,7 @@ rule train_generator_attempt:
     wildcard_constraints:
         attempt=generator_attempt_pattern(),
     params:
-        settings=lambda w: attempt_generator_settings(w.attempt, drop=("sampling",)),
+        settings=lambda w: attempt_generator_settings(w.attempt, drop=("sampling", "distillation")),
         seed=config["seed"],
         work_dir=lambda w: f"work/generator/attempt-{w.attempt}",
         code=code("train-generator"),

@@ -118,6 +118,10 @@ _DOWN = config["downstream"]
 _LABELER = _DOWN["labeler"]
 _DET = _DOWN["det"]
 _GEN_TRAIN = config["generator"]["training"]
+_DISTILL = config["generator"]["distillation"]
+# A shard's network evaluations: the distilled student's DDIM steps where sampling uses it.
+_SAMPLING_STEPS = (config["generator"]["distillation"]["teacher_steps"] >> config["generator"]["distillation"]["rounds"]
+                   if config["generator"]["sampling"]["student"] else config["generator"]["sampling"]["steps"])
 _LABELER_MODEL = {_LABELER["backbone"]: _LABELER["model"]}
 _LABELER_WORK = _segmentor_work(_LABELER["schedule"]["batch_size"], _LABELER["max_points"], _LABELER_MODEL)
 _STUDENT_WORK = _segmentor_work(_DOWN["schedule"]["batch_size"], _DOWN["max_points"], _DOWN["models"])
@@ -187,10 +191,14 @@ _RULES = {
                         _runtime(_train_seconds(_GEN_TRAIN["iterations"])), _GEN_TRAIN["num_workers"] + 1),
     "train_single_domain": (_GEN_TRAIN["device"], _generator_train_work(),
                             _runtime(_train_seconds(_baseline_iterations())), _GEN_TRAIN["num_workers"] + 1),
+    # A distillation step runs the teacher twice (forward only) beside the student's forward and
+    # backward: about 5 forward passes against a training step's 3.
+    "distill_generator": (_GEN_TRAIN["device"], _generator_train_work(),
+                          _runtime(_train_seconds(_DISTILL["rounds"] * _DISTILL["iterations_per_round"]) * 5 / 3),
+                          _GEN_TRAIN["num_workers"] + 1),
     "sample_domain": (config["generator"]["sampling"]["device"],
                       _generator_sample_work(config["generator"]["sampling"]["batch_size"]),
-                      _runtime(sampling_seconds(config["generator"]["sampling"]["scans_per_shard"],
-                                                config["generator"]["sampling"]["steps"])), 2),
+                      _runtime(sampling_seconds(config["generator"]["sampling"]["scans_per_shard"], _SAMPLING_STEPS)), 2),
     "sample_eval": (_EVAL["device"], _generator_sample_work(config["generator"]["sampling"]["batch_size"]),
                     lambda wildcards, input: _runtime(sampling_seconds(
                         config["generator"]["sampling"]["scans_per_shard"], int(wildcards.steps))), 2),

@@ -23,7 +23,7 @@ def run(args) -> int:
     from omnilidar.checkpoints import job_provenance
     from omnilidar.config import validate
     from omnilidar.devices import resolve_device
-    from omnilidar.generator.sampling import sample_shard
+    from omnilidar.generator.sampling import sample_shard, student_sampling
     from omnilidar.generator.text import load_prompt_cache
     from omnilidar.generator.checkpoint import load_generator
 
@@ -32,6 +32,7 @@ def run(args) -> int:
     n = args.scans_per_shard or sampling["scans_per_shard"]
     device = resolve_device(sampling["device"], "generator.sampling.device")
     denoiser, payload = load_generator(args.checkpoint, device=device)
+    sampling = student_sampling(sampling, payload, args.checkpoint)
     cache = load_prompt_cache(args.prompts)
     # Scans left by an interrupted job are reused only when they came from this very job.
     provenance = job_provenance("sample", {"sampling": sampling, "domain": args.domain, "shard": args.shard,

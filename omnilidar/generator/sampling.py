@@ -63,6 +63,18 @@ def _check_partial(partial: Path, provenance: dict | None, log) -> None:
         stamp.write_text(json.dumps(provenance, indent=1, sort_keys=True))
 
 
+def student_sampling(sampling: dict, payload: dict, path: str | Path) -> dict:
+    """The sampling settings for a checkpoint: a distilled student samples with the DDIM steps it
+    was distilled for, and ``sampling.student`` asks for one."""
+    student = payload.get("student")
+    if sampling.get("student") and not student:
+        raise InputError(path, "generator.sampling.student is set but this is not a distilled student "
+                               "(make data/generator/<preset>/student.pt with distill_generator)")
+    if not student:
+        return sampling
+    return {**sampling, "sampler": student["sampler"], "steps": int(student["steps"]), "ddim_eta": 0.0}
+
+
 def sample_shard(
     denoiser: torch.nn.Module,
     payload: dict,

@@ -39,8 +39,9 @@ from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_pr
                                    resumable_runner_args, resume_point, weights_only_hooks)
 from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
-from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT
+from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
 from omnilidar.generator.diffusion import epsilon_loss
+from omnilidar.generator.distill import distillation_loss, round_steps, student_steps
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
@@ -63,9 +64,10 @@ def use_training_device(name: str) -> None:
         resolve_device(name, "generator.training.device")
 
 
-def trajectory_settings(settings: dict) -> dict:
-    """The settings that determine the training trajectory (provenance of a run)."""
-    relevant = {k: v for k, v in settings.items() if k != "sampling"}
+def trajectory_settings(settings: dict, distilling: bool = False) -> dict:
+    """The settings that determine the training trajectory (provenance of a run); the
+    distillation section only where the run is a distillation."""
+    relevant = {k: v for k, v in settings.items() if k != "sampling" and (distilling or k != "distillation")}
     relevant["training"] = {k: v for k, v in settings["training"].items() if k not in _RESUMABLE_KEYS}
     return json.loads(json.dumps(relevant, sort_keys=True, default=str))
 
@@ -73,9 +75,15 @@ def trajectory_settings(settings: dict) -> dict:
 # --------------------------------------------------------------------------- model
 
 
-def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, prompt_mask: torch.Tensor, seed: int):
+def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, prompt_mask: torch.Tensor, seed: int,
+                         teacher: torch.nn.Module | None = None):
     """The mmengine adapter: ``loss`` mode is :func:`omnilidar.generator.diffusion.epsilon_loss`
-    with noise drawn from a generator keyed by (seed, rank, iteration)."""
+    with noise drawn from a generator keyed by (seed, rank, iteration).
+
+    With a frozen ``teacher`` the loss is :func:`omnilidar.generator.distill.distillation_loss`
+    instead, round by round (``settings["distillation"]``): at each round's first step the teacher
+    takes the student's weights. The teacher and its round are part of the model's state, so a
+    checkpoint resumes with the teacher of its round."""
     from mmengine.dist import get_rank
     from mmengine.model import BaseModel
 
@@ -91,14 +99,34 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             self.register_buffer("prompt_mask", prompt_mask.bool(), persistent=False)
             self.seed = int(seed)
             self.iteration = 0  # set by IterationHook before every step
+            self.teacher = teacher
+            if teacher is not None:
+                teacher.requires_grad_(False)
+                self.register_buffer("teacher_round", torch.zeros((), dtype=torch.long))
+
+        def train(self, mode: bool = True):
+            super().train(mode)
+            if self.teacher is not None:
+                self.teacher.eval()
+            return self
 
         def forward(self, image=None, domain=None, prompt=None, mode: str = "loss"):
             if mode != "loss":
                 raise ValueError(f"DiffusionModel supports mode='loss' only, got {mode!r}")
             gen = torch.Generator(device=image.device)
             gen.manual_seed(int(rng_for(self.seed, get_rank(), self.iteration).integers(2**63 - 1)))
-            loss = epsilon_loss(self.denoiser, image, domain, self.prompt_tokens[prompt], self.prompt_mask[prompt],
-                                self.schedule, self.gamma, gen, crop_width=self.crop_width)
+            tokens, mask = self.prompt_tokens[prompt], self.prompt_mask[prompt]
+            if self.teacher is None:
+                loss = epsilon_loss(self.denoiser, image, domain, tokens, mask, self.schedule, self.gamma, gen,
+                                    crop_width=self.crop_width)
+                return {"loss": loss}
+            round_index = self.iteration // settings["distillation"]["iterations_per_round"]
+            if int(self.teacher_round) < round_index:  # a new round: the student becomes the teacher
+                self.teacher.load_state_dict(self.denoiser.state_dict())
+                self.teacher_round.fill_(round_index)
+            loss = distillation_loss(self.denoiser, self.teacher, image, domain, tokens, mask, self.schedule,
+                                     round_steps(settings["distillation"], round_index), gen,
+                                     crop_width=self.crop_width)
             return {"loss": loss}
 
     return DiffusionModel()
@@ -209,6 +237,19 @@ def check_crop_width(settings: dict) -> None:
                                f"(the UNet halves the width {down.bit_length() - 1} times)")
 
 
+def teacher_weights(path: str | Path, settings: dict, names: list[str], cache: dict) -> torch.nn.Module:
+    """The trained generator to distill, checked against the student's settings and inputs."""
+    frozen, payload = load_generator(path)
+    for key in ("range_image", "model", "diffusion"):
+        if payload["config"][key] != settings[key]:
+            raise InputError(path, f"the teacher was trained with other generator.{key} settings than the student's")
+    if payload["domains"] != names or int(payload["text"]["dim"]) != int(cache["dim"]):
+        raise InputError(path, "the teacher was trained on other domains or prompt embeddings than the student's")
+    if payload.get("student"):
+        raise InputError(path, "is already a distilled student; distill the trained generator")
+    return frozen
+
+
 def train_generator(
     settings: dict,
     domains_index: str | Path,
@@ -217,8 +258,14 @@ def train_generator(
     out: str | Path,
     seed: int = 0,
     until: int | None = None,
+    teacher: str | Path | None = None,
 ) -> dict:
     """Train (or resume) the generator and write the final EMA weights + config to ``out``.
+
+    ``teacher``: a trained generator checkpoint to distill instead (``settings["distillation"]``,
+    :mod:`omnilidar.generator.distill`): the student starts from its weights, trains
+    ``rounds x iterations_per_round`` steps at the distillation learning rate, without EMA, and
+    ``out`` records the DDIM steps it samples in (``payload["student"]``).
 
     ``until``: one segment of a chain (see ``rules/generator.smk``): train only up to that
     iteration, leave the resumable state (checkpoint at ``until``) in ``work_dir`` and write a
@@ -234,9 +281,14 @@ def train_generator(
     from omnilidar.io.atomic import atomic_path
 
     tr = settings["training"]
-    if until is not None and not 0 < until < tr["iterations"]:
-        raise InputError(None, f"--until {until} must lie between 0 and the {tr['iterations']} iterations to train")
-    stop = until or tr["iterations"]
+    dist = settings["distillation"] if teacher is not None else None
+    iterations = tr["iterations"] if dist is None else dist["rounds"] * dist["iterations_per_round"]
+    if until is not None and not 0 < until < iterations:
+        raise InputError(None, f"--until {until} must lie between 0 and the {iterations} iterations to train")
+    stop = until or iterations
+    if dist is not None and (dist["teacher_steps"] >> dist["rounds"]) << dist["rounds"] != dist["teacher_steps"]:
+        raise InputError(None, f"generator.distillation: teacher_steps {dist['teacher_steps']} cannot be halved "
+                               f"{dist['rounds']} times")
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
@@ -249,11 +301,11 @@ def train_generator(
     run_dir = Path(work_dir)
     launcher, rank, world = _dist_info()
     init_distributed(world)
-    trajectory = trajectory_settings(settings)
+    trajectory = trajectory_settings(settings, distilling=dist is not None)
     if world > 1:  # each rank draws its own batches: the trajectory depends on how many there are
         trajectory["world_size"] = world
-    provenance = job_provenance("train-generator", trajectory, seed,
-                                {"domains": domains_index, "prompts": prompts_path})
+    inputs = {"domains": domains_index, "prompts": prompts_path} | ({"teacher": teacher} if dist else {})
+    provenance = job_provenance("train-generator" if dist is None else "distill-generator", trajectory, seed, inputs)
     resume_from = agreed_resume_point(run_dir, provenance, stop, world)
     skip = checkpoint_iteration(resume_from) if resume_from else 0
 
@@ -270,17 +322,22 @@ def train_generator(
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(init_seed)
         denoiser = build_denoiser(settings, cache["dim"], len(names))
-    model = make_diffusion_model(denoiser, settings, tokens, mask, seed)
+    frozen = None
+    if dist is not None:
+        frozen = teacher_weights(teacher, settings, names, cache)
+        denoiser.load_state_dict(frozen.state_dict())
+    model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen)
 
     cuda = torch.cuda.is_available()
-    optimizer = dict(type="AdamW", lr=tr["lr"], betas=tuple(tr["betas"]), weight_decay=tr["weight_decay"])
+    lr = tr["lr"] if dist is None else dist["lr"]
+    optimizer = dict(type="AdamW", lr=lr, betas=tuple(tr["betas"]), weight_decay=tr["weight_decay"])
     optim_wrapper = dict(type="OptimWrapper", optimizer=optimizer)
     if cuda and tr["bf16"]:
         optim_wrapper = dict(type="AmpOptimWrapper", dtype="bfloat16", optimizer=optimizer)
     if tr["grad_clip"] > 0:
         optim_wrapper["clip_grad"] = dict(max_norm=tr["grad_clip"])
     param_scheduler = None
-    if tr["warmup_iters"] > 0:
+    if tr["warmup_iters"] > 0 and dist is None:  # a student starts from trained weights
         param_scheduler = [
             # mmengine's LinearLR reaches end_factor at step end - 1
             dict(type="LinearLR", start_factor=1e-3, by_epoch=False, begin=0, end=tr["warmup_iters"] + 1)
@@ -305,7 +362,7 @@ def train_generator(
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
         default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
-        custom_hooks=[ema_hook(tr), *make_hooks(settings, names, seed, provenance, training_cost)],
+        custom_hooks=[*([ema_hook(tr)] if dist is None else []), *make_hooks(settings, names, seed, provenance, training_cost)],
         launcher=launcher,
         # A CPU module takes no device_ids (mmengine's default passes LOCAL_RANK).
         cfg=None if cuda or world == 1 else dict(model_wrapper_cfg=dict(
@@ -313,9 +370,11 @@ def train_generator(
         env_cfg=dict(cudnn_benchmark=False, dist_cfg=dict(backend="nccl" if cuda else "gloo")),
         **resumable_runner_args(resume_from, seed, tr["log_interval"]),
     )
+    what = "generator" if dist is None else (
+        f"student of {teacher} ({dist['teacher_steps']} -> {student_steps(dist)} DDIM steps in {dist['rounds']} rounds)")
     runner.logger.info(
-        f"omnilidar generator: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
-        f"{len(dataset)} scans, strategy {tr['strategy']}, {tr['iterations']} iterations"
+        f"omnilidar {what}: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
+        f"{len(dataset)} scans, strategy {tr['strategy']}, {iterations} iterations"
         + (f" (this segment up to {stop})" if until else "")
         + (f", resuming at iteration {skip} from {resume_from.name}" if resume_from else ", from scratch")
     )
@@ -324,8 +383,11 @@ def train_generator(
     if is_main_process():
         relative_marker(run_dir)
 
-    ema = next(h for h in runner._hooks if isinstance(h, EMAHook)).ema_model.module
-    state = {k: v.detach().cpu().clone() for k, v in ema.denoiser.state_dict().items()}
+    if dist is None:
+        final = next(h for h in runner._hooks if isinstance(h, EMAHook)).ema_model.module.denoiser
+    else:
+        final = denoiser
+    state = {k: v.detach().cpu().clone() for k, v in final.state_dict().items()}
     summary = {
         "iterations": int(runner.iter),
         # Same on every DDP rank when gradients were averaged (tests compare the ranks').
@@ -358,6 +420,9 @@ def train_generator(
             "provenance": provenance,
             **{k: v for k, v in summary.items() if k != "work_dir"},
         }
+        if dist is not None:
+            payload["student"] = {"sampler": "ddim", "steps": student_steps(dist), "teacher": str(teacher),
+                                  "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"])}
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
     logging.getLogger("mmengine").info(f"wrote {out}")

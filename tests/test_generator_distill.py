@@ -1,0 +1,176 @@
+"""Progressive distillation: the target's algebra, a real tiny distillation run, resume, provenance,
+sampling with the student in every domain, and the workflow's wiring."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from omnilidar.errors import InputError
+from omnilidar.generator.checkpoint import load_generator
+from omnilidar.generator.distill import ddim_move, distillation_loss, student_steps, two_step_target
+from omnilidar.generator.sampling import sample_shard, student_sampling
+from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
+from omnilidar.generator.text import build_prompt_cache, load_prompt_cache
+from omnilidar.generator.training import train_generator
+from test_generator_fixtures import TINY_DOMAINS, make_domains, one_torch_thread, tiny_settings  # noqa: F401
+from test_generator_training import FakeEncoder
+from workflow_helpers import copy_workflow, planned_jobs
+
+DISTILL = {"teacher_steps": 4, "rounds": 2, "iterations_per_round": 2, "lr": 1e-3}
+
+
+def distill_settings(**distillation) -> dict:
+    s = tiny_settings()
+    s["training"].update(iterations=4, checkpoint_interval=1)
+    s["distillation"].update(DISTILL, **distillation)
+    return s
+
+
+@pytest.fixture(scope="module")
+def teacher(tmp_path_factory):
+    root = tmp_path_factory.mktemp("distill")
+    settings = distill_settings()
+    index = make_domains(root, settings)
+    prompts = root / "prompts.pt"
+    torch.save(build_prompt_cache(settings["prompts"], FakeEncoder()), prompts)
+    train_generator(settings, index, prompts, root / "teacher_work", root / "model.pt", seed=3)
+    student = train_generator(settings, index, prompts, root / "student_work", root / "student.pt", seed=3,
+                              teacher=root / "model.pt")
+    return root, settings, index, prompts, student
+
+
+def _state(path):
+    return torch.load(path, map_location="cpu", weights_only=True)["state_dict"]
+
+
+def test_one_student_step_lands_where_two_teacher_steps_do():
+    g = torch.Generator().manual_seed(0)
+    z_t = torch.randn(3, 2, 4, 8, generator=g)
+    x0a, x0b = (torch.rand(3, 2, 4, 8, generator=g) * 2 - 1 for _ in range(2))
+    l_t, l_mid, l_end = torch.tensor([-15.0, -2.0, 3.0]), torch.tensor([-6.0, 1.0, 6.0]), torch.tensor([-1.0, 4.0, 15.0])
+    z_end = ddim_move(x0b, ddim_move(x0a, z_t, l_t, l_mid), l_mid, l_end)
+    target = two_step_target(z_t, z_end, l_t, l_end)
+    torch.testing.assert_close(ddim_move(target, z_t, l_t, l_end), z_end, atol=1e-4, rtol=1e-4)
+
+
+class PointMass(torch.nn.Module):
+    """The exact denoiser of data that is one image ``c``: its x0 estimate is always ``c``."""
+
+    def __init__(self, c: torch.Tensor):
+        super().__init__()
+        self.c = c
+
+    def forward(self, z, logsnr, domain, tokens, mask, columns=None):
+        a, s = alpha_sigma(logsnr.double())
+        c = self.c if columns is None else torch.gather(self.c.expand(len(z), -1, -1, -1), 3,
+                                                        columns[:, None, None, :].expand(-1, *z.shape[1:3], -1))
+        return ((z.double() - a[:, None, None, None] * c) / s[:, None, None, None]).float()
+
+
+@pytest.mark.parametrize("crop_width", [None, 4])
+def test_the_exact_teacher_teaches_itself_and_a_wrong_student_pays_its_error(crop_width):
+    c = torch.linspace(-0.5, 0.5, 2 * 4 * 8).reshape(1, 2, 4, 8)
+    image = c.expand(3, -1, -1, -1).clone()
+    args = (image, torch.zeros(3, dtype=torch.long), torch.zeros(3, 2, 5), torch.ones(3, 2, dtype=torch.bool),
+            CosineLogSNRSchedule(), 2)
+    exact = PointMass(c)
+    loss = distillation_loss(exact, exact, *args, torch.Generator().manual_seed(1), crop_width=crop_width)
+    assert float(loss) < 1e-6
+    wrong = distillation_loss(PointMass(c + 0.1), exact, *args, torch.Generator().manual_seed(1), crop_width=crop_width)
+    assert float(wrong) >= 0.01 * (1 - 1e-3)  # x0 off by 0.1 everywhere, weight max(SNR, 1) >= 1
+
+
+def test_a_tiny_distillation_writes_a_one_step_student(teacher):
+    root, settings, _, _, summary = teacher
+    assert summary["iterations"] == 4 and summary["resumed_from"] == 0
+    payload = torch.load(root / "student.pt", map_location="cpu", weights_only=True)
+    assert payload["student"] == {"sampler": "ddim", "steps": 1, "teacher": str(root / "model.pt"),
+                                  "teacher_steps": 4, "rounds": 2}
+    assert student_steps(settings["distillation"]) == 1
+    prov = payload["provenance"]
+    assert prov["command"] == "distill-generator" and set(prov["inputs"]) == {"domains", "prompts", "teacher"}
+    assert payload["domains"] == list(TINY_DOMAINS) and payload["config"] == settings
+    teacher_state, student_state = _state(root / "model.pt"), _state(root / "student.pt")
+    assert teacher_state.keys() == student_state.keys()
+    assert not all(torch.equal(teacher_state[k], student_state[k]) for k in teacher_state)
+    # The teacher's own checkpoint says nothing about distillation: its provenance leaves that section out.
+    assert "distillation" not in torch.load(root / "model.pt", weights_only=True)["provenance"]["settings"]
+
+
+def test_the_student_samples_every_domain_in_its_own_steps(teacher, tmp_path):
+    root, settings, _, prompts, _ = teacher
+    den, payload = load_generator(root / "student.pt")
+    asked = dict(settings["sampling"], student=True, sampler="dpmpp_2m", steps=20)
+    sampling = student_sampling(asked, payload, root / "student.pt")
+    assert (sampling["sampler"], sampling["steps"]) == ("ddim", 1)
+    cache = load_prompt_cache(prompts)
+    images = {}
+    for domain in TINY_DOMAINS:
+        stats = sample_shard(den, payload, cache, domain, 0, 2, sampling, 5, tmp_path / domain, log=lambda *_: None)
+        assert stats["generated"] == 2
+        images[domain] = np.load(tmp_path / domain / "range" / "000000.npz")["image"]
+    # Same seed, different domain and prompt: the conditioning still steers the one-step student.
+    assert not np.array_equal(images["Vehicle"], images["Fog"])
+    with pytest.raises(InputError, match="not a distilled student"):
+        student_sampling(asked, load_generator(root / "model.pt")[1], root / "model.pt")
+
+
+@pytest.mark.parametrize("until", [2, 3])  # a round boundary, and inside the second round
+def test_an_interrupted_distillation_resumes_to_the_same_student(teacher, tmp_path, until):
+    root, settings, index, prompts, _ = teacher
+    work = tmp_path / "work"
+    train_generator(settings, index, prompts, work, tmp_path / "seg.json", seed=3, until=until,
+                    teacher=root / "model.pt")
+    resumed = train_generator(settings, index, prompts, work, tmp_path / "student.pt", seed=3,
+                              teacher=root / "model.pt")
+    assert resumed["resumed_from"] == until
+    a, b = _state(root / "student.pt"), _state(tmp_path / "student.pt")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_changed_distillation_settings_or_teacher_start_afresh(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    work = tmp_path / "work"
+    import shutil
+
+    shutil.copytree(root / "student_work", work)
+    other = copy.deepcopy(settings)
+    other["distillation"]["lr"] = 3e-3
+    changed = train_generator(other, index, prompts, work, tmp_path / "lr.pt", seed=3, teacher=root / "model.pt")
+    assert changed["resumed_from"] == 0
+    assert not all(torch.equal(a, b) for a, b in zip(_state(root / "student.pt").values(),
+                                                     _state(tmp_path / "lr.pt").values()))
+    # Another teacher (one more training iteration) is another input: the state is not reused either.
+    longer = copy.deepcopy(settings)
+    longer["training"]["iterations"] = 5
+    train_generator(longer, index, prompts, root / "teacher_work", tmp_path / "model5.pt", seed=3)
+    moved = train_generator(settings, index, prompts, work, tmp_path / "s5.pt", seed=3, teacher=tmp_path / "model5.pt")
+    assert moved["resumed_from"] == 0
+
+
+def test_a_teacher_that_does_not_fit_is_one_clear_error(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    wider = copy.deepcopy(settings)
+    wider["model"]["base_channels"] = 16
+    with pytest.raises(InputError, match="other generator.model settings"):
+        train_generator(wider, index, prompts, tmp_path / "w", tmp_path / "s.pt", seed=3, teacher=root / "model.pt")
+    with pytest.raises(InputError, match="already a distilled student"):
+        train_generator(settings, index, prompts, tmp_path / "w", tmp_path / "s.pt", seed=3, teacher=root / "student.pt")
+    odd = distill_settings(teacher_steps=6, rounds=2)
+    with pytest.raises(InputError, match="cannot be halved"):
+        train_generator(odd, index, prompts, tmp_path / "w", tmp_path / "s.pt", seed=3, teacher=root / "model.pt")
+    assert not (tmp_path / "s.pt").exists()
+
+
+def test_the_workflow_samples_from_the_student_when_asked(tmp_path):
+    wf = copy_workflow(tmp_path)
+    (tmp_path / "student.yaml").write_text("generator: {sampling: {student: true}}\n")
+    target = "data/samples/Vehicle/shard_0"
+    teacher_jobs = planned_jobs(wf, target, "--configfile", "config/test.yaml")
+    student_jobs = planned_jobs(wf, target, "--configfile", "config/test.yaml", str(tmp_path / "student.yaml"))
+    assert "distill_generator" not in teacher_jobs and student_jobs["distill_generator"] == 1
+    assert student_jobs["train_generator"] == teacher_jobs["train_generator"] == 1
