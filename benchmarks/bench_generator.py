@@ -5,11 +5,15 @@
         --samplers ddpm:256 dpmpp_2m:32                  # paper scale on a GPU (the paper: 3.52 s/frame, H100)
     python benchmarks/bench_generator.py --geometries 32x256 64x512 64x512:128 64x1024:128 \
         --samplers dpmpp_2m:20                           # what resolution and azimuth-window training cost
+    python benchmarks/bench_generator.py --student data/generator/full/student.pt \
+        --samplers dpmpp_2m:20 unipc:8                   # a distilled student beside its teacher's solvers
 
 Prints medians over --repeats runs and the ratio of each sampler setting to the first one;
 with several --geometries (HxW, or HxW:C for training on C-column azimuth windows) each
 geometry's training step and sampling time, and their ratios to the first geometry.
-Random weights and random prompt tokens: speed does not depend on them.
+Random weights and random prompt tokens: speed does not depend on them. With --student the
+trained checkpoints are timed instead: the student in its own DDIM steps and its teacher (the
+checkpoint the student names) with each of --samplers, on the Vehicle prompt, one run.
 """
 
 from __future__ import annotations
@@ -59,7 +63,12 @@ def main() -> None:
     ap.add_argument("--bf16", action="store_true", help="bf16 autocast (CUDA)")
     ap.add_argument("--geometries", nargs="*", default=[],
                     help="HxW or HxW:CROP image geometries to compare (default: the config's)")
+    ap.add_argument("--student", default=None, help="a distilled student checkpoint (distill_generator's output)")
+    ap.add_argument("--prompts", default="data/generator/prompts.pt", help="prompt cache, with --student")
     args = ap.parse_args()
+    if args.student:
+        bench_student(args)
+        return
     geometries = args.geometries or [None]
     first = None
     for geometry in geometries:
@@ -140,6 +149,49 @@ def bench_geometry(args, geometry: str | None) -> tuple[float, float]:
         print(f"sample {name:>8} {steps:4d} steps (batch {b_sample}): median {per_scan:.3f} s/scan  "
               f"ratio {per_scan / base:.2f}")
     return step, first
+
+
+def _time_sampling(den, payload, cache, sampler: str, steps: int, args, device) -> float:
+    """Median seconds per scan of one sampler setting with a trained checkpoint's Vehicle prompt."""
+    from omnilidar.generator.schedule import CosineLogSNRSchedule
+
+    cfg = payload["config"]
+    shape = (cfg["range_image"]["height"], cfg["range_image"]["width"])
+    domain = "Vehicle" if "Vehicle" in payload["domains"] else payload["domains"][0]
+    entry = cache["domains"][domain]
+    batch = args.batch or cfg["sampling"]["batch_size"]
+    schedule = CosineLogSNRSchedule(cfg["diffusion"]["logsnr_min"], cfg["diffusion"]["logsnr_max"])
+    runs = []
+    for r in range(args.repeats):
+        _sync(device)
+        t0 = time.perf_counter()
+        generate(den, payload["domains"].index(domain), entry["tokens"][0], entry["mask"][0],
+                 list(range(r * batch, (r + 1) * batch)), shape, sampler=sampler, steps=steps, schedule=schedule,
+                 autocast_bf16=args.bf16)
+        _sync(device)
+        runs.append((time.perf_counter() - t0) / batch)
+    return statistics.median(runs)
+
+
+def bench_student(args) -> None:
+    """The student in its DDIM steps against its teacher's solvers, seconds per scan, one run."""
+    from omnilidar.generator.checkpoint import load_generator
+    from omnilidar.generator.text import load_prompt_cache
+
+    device = torch.device(args.device)
+    student, payload = load_generator(args.student, device=device)
+    if not payload.get("student"):
+        raise SystemExit(f"{args.student}: not a distilled student")
+    teacher, teacher_payload = load_generator(payload["student"]["teacher"], device=device)
+    cache = load_prompt_cache(args.prompts)
+    print(f"student {args.student} ({payload['student']['steps']} DDIM steps) and teacher "
+          f"{payload['student']['teacher']}, device {device}, threads {torch.get_num_threads()}")
+    rows = [(f"teacher {spec}", _time_sampling(teacher, teacher_payload, cache, spec.split(":")[0],
+                                                int(spec.split(":")[1]), args, device)) for spec in args.samplers]
+    steps = int(payload["student"]["steps"])
+    rows.append((f"student ddim:{steps}", _time_sampling(student, payload, cache, "ddim", steps, args, device)))
+    for name, per_scan in rows:
+        print(f"{name:>28}: median {per_scan:.3f} s/scan, {rows[0][1] / per_scan:.1f}x faster than {rows[0][0]}")
 
 
 if __name__ == "__main__":

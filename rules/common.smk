@@ -256,6 +256,10 @@ def weights_args(weights):
     return " ".join(f"--weights {k}={v}" for k, v in weights.items())
 
 
+# DDIM steps of the distilled student (generator.distillation).
+STUDENT_STEPS = config["generator"]["distillation"]["teacher_steps"] >> config["generator"]["distillation"]["rounds"]
+
+
 def sampling_checkpoint(preset):
     """What sample_domain samples: the trained generator, or its distilled student."""
     name = "student.pt" if config["generator"]["sampling"]["student"] else "model.pt"

@@ -12,7 +12,7 @@ GEN_DOMAINS = list(config["generator"]["prompts"])
 GQ_WEIGHTS = extractor_weights(EVAL["generation_quality"]["metrics"])
 ABL_WEIGHTS = extractor_weights(EVAL["ablation"]["metrics"])
 K360_WEIGHTS = extractor_weights(EVAL["kitti360"]["metrics"])
-TRADEOFF_WEIGHTS = extractor_weights([EVAL["tradeoff"]["feature_metric"]])
+TRADEOFF_WEIGHTS = extractor_weights(EVAL["tradeoff"]["feature_metrics"])
 
 
 # Generated sets of the tables: sample shard jobs (rules/evaluation_sets.smk).
@@ -26,6 +26,12 @@ K360_SETS = generated_sets({
 TRADEOFF_SETS = generated_sets({f"{s}-{n}/{d}": ("full", d, s, n, EVAL["tradeoff"]["scans"])
                                 for s, steps in EVAL["tradeoff"]["samplers"].items() for n in steps
                                 for d in (EVAL["tradeoff"]["domains"] or GEN_DOMAINS)})
+# The distilled student, sampled (DDIM in its own steps) beside the teacher's solvers.
+TRADEOFF_STUDENT = [f"{GENERATOR}/full/student.pt"] if EVAL["tradeoff"]["student"] else []
+if TRADEOFF_STUDENT:
+    TRADEOFF_SETS |= generated_sets({f"student-{STUDENT_STEPS}/{d}": ("student", d, "ddim", STUDENT_STEPS,
+                                                                       EVAL["tradeoff"]["scans"])
+                                     for d in (EVAL["tradeoff"]["domains"] or GEN_DOMAINS)})
 
 
 rule sample_eval:
@@ -37,7 +43,7 @@ rule sample_eval:
         directory(f"{DATA}/eval_samples/{{model}}/{{sampler}}_{{steps}}/{{domain}}/shard_{{shard}}"),
     wildcard_constraints:
         model=r"[a-z_]+|baseline-\w+",
-        sampler="ddpm|ddim|dpmpp_2m",
+        sampler=r"[a-z]+(_[a-z0-9]+)*",
         steps=r"\d+",
         shard=r"\d+",
     params:
@@ -238,6 +244,7 @@ rule sampler_tradeoff:
         curve="results/gda_curve.json",
         weights=list(TRADEOFF_WEIGHTS.values()),
         samples=[d for dirs in TRADEOFF_SETS.values() for d in dirs],
+        student=TRADEOFF_STUDENT,
     output:
         json="results/tradeoff.json",
         table="results/tables/tradeoff.html",
@@ -245,6 +252,7 @@ rule sampler_tradeoff:
     params:
         settings=eval_settings("tradeoff"),
         seed=config["seed"],
+        student=" ".join(f"--student {p}" for p in TRADEOFF_STUDENT),
         weights=weights_args(TRADEOFF_WEIGHTS),
         samples=sets_args(TRADEOFF_SETS),
         data_source=data_source(),
@@ -260,7 +268,7 @@ rule sampler_tradeoff:
     shell:
         with_table(
             "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
-            "--checkpoint {input.checkpoint} {params.weights} {params.samples} --effects {input.effects} "
+            "--checkpoint {input.checkpoint} {params.student} {params.weights} {params.samples} --effects {input.effects} "
             "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
             "--out {output.json} --figure {output.figure} > {log} 2>&1"
         )

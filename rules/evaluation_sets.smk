@@ -7,9 +7,12 @@ EVAL_SHARD = config["generator"]["sampling"]["scans_per_shard"]
 
 
 def eval_checkpoint(model):
-    """Generator of an evaluation set: a preset (full, cdts, ...) or baseline-<Domain>."""
+    """Generator of an evaluation set: a preset (full, cdts, ...), baseline-<Domain>, or `student`
+    (the full preset's distilled student)."""
     if model.startswith("baseline-"):
         return f"{SINGLE_DOMAIN}/{model[len('baseline-'):]}/model.pt"
+    if model == "student":
+        return f"{GENERATOR}/full/student.pt"
     return f"{GENERATOR}/{model}/model.pt"
 
 

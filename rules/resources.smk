@@ -120,8 +120,7 @@ _DET = _DOWN["det"]
 _GEN_TRAIN = config["generator"]["training"]
 _DISTILL = config["generator"]["distillation"]
 # A shard's network evaluations: the distilled student's DDIM steps where sampling uses it.
-_SAMPLING_STEPS = (config["generator"]["distillation"]["teacher_steps"] >> config["generator"]["distillation"]["rounds"]
-                   if config["generator"]["sampling"]["student"] else config["generator"]["sampling"]["steps"])
+_SAMPLING_STEPS = STUDENT_STEPS if config["generator"]["sampling"]["student"] else config["generator"]["sampling"]["steps"]
 _LABELER_MODEL = {_LABELER["backbone"]: _LABELER["model"]}
 _LABELER_WORK = _segmentor_work(_LABELER["schedule"]["batch_size"], _LABELER["max_points"], _LABELER_MODEL)
 _STUDENT_WORK = _segmentor_work(_DOWN["schedule"]["batch_size"], _DOWN["max_points"], _DOWN["models"])

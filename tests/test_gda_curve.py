@@ -235,7 +235,7 @@ def test_sampler_tradeoff_puts_the_curve_rows_in_its_output(fixture_dir, tmp_pat
         {**GOOD_ROW, "generated_scans": 8, "miou": 0.31, "total_seconds": 66.0},
         {**GOOD_ROW, "generated_scans": 0, "miou": 0.22, "total_seconds": 48.0}]}))
     settings = tradeoff_settings(tradeoff={"samplers": {"ddim": [1]}, "scans": 2, "domains": ["Vehicle"],
-                                           "feature_metric": "FRID"})
+                                           "seed_groups": 1, "feature_metrics": ["FRID"]})
     rc = main(["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
                "--checkpoint", str(r / "model.pt"), "--weights", f"frid={r / 'frid.pt'}", "--gda-curve", str(curve),
                "--settings", settings, "--out", str(tmp_path / "t.json"), "--figure", str(tmp_path / "t.png")])

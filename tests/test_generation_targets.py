@@ -148,19 +148,34 @@ def test_kitti360_and_evidence(fixture_dir):
 
 def test_sampler_tradeoff_one_run(fixture_dir):
     r = fixture_dir
-    settings = _settings(tradeoff={"samplers": {"ddim": [1, 2], "dpmpp_2m": [1]}, "scans": 2,
-                                   "domains": ["Vehicle"], "feature_metric": "FRID"})
-    rc = main(["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
-               "--checkpoint", str(r / "model.pt"), "--weights", f"frid={r / 'frid.pt'}",
-               "--weights", f"fpd={r / 'fpd.pt'}", "--effects", str(r / "effects.json"),
-               "--settings", settings,
-               "--out", str(r / "t.json"), "--figure", str(r / "t.png")])
-    assert rc == 0
+    # A stand-in student: the untrained checkpoint marked as a one-step student (distillation
+    # itself is tested in test_generator_distill); the study samples it with DDIM x 1.
+    payload = torch.load(r / "model.pt", weights_only=True)
+    payload["student"] = {"sampler": "ddim", "steps": 1, "teacher": str(r / "model.pt"), "teacher_steps": 2,
+                          "rounds": 1}
+    torch.save(payload, r / "student.pt")
+    settings = _settings(tradeoff={"samplers": {"ddim": [1, 2], "dpmpp_2m": [1], "unipc_karras": [2]}, "scans": 4,
+                                   "seed_groups": 2, "student": True, "domains": ["Vehicle"],
+                                   "feature_metrics": ["FRID"]})
+    args = ["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts", str(r / "prompts.pt"),
+            "--checkpoint", str(r / "model.pt"), "--weights", f"frid={r / 'frid.pt'}",
+            "--weights", f"fpd={r / 'fpd.pt'}", "--effects", str(r / "effects.json"),
+            "--settings", settings, "--out", str(r / "t.json"), "--figure", str(r / "t.png")]
+    assert main(args) == 2 and not (r / "t.json").exists()  # the student is asked for but not given
+    assert main([*args, "--student", str(r / "student.pt")]) == 0
     t = json.loads((r / "t.json").read_text())
-    assert [(p["sampler"], p["steps"]) for p in t["points"]] == [("ddim", 1), ("ddim", 2), ("dpmpp_2m", 1)]
+    assert [(p["sampler"], p["steps"]) for p in t["points"]] == [
+        ("ddim", 1), ("ddim", 2), ("dpmpp_2m", 1), ("unipc_karras", 2), ("student", 1)]
     assert all(p["seconds_per_scan"] > 0 for p in t["points"])
     assert any(p["pareto"]["JSD"] for p in t["points"]) and "JSD" in t["recommended"]
-    assert set(t["points"][0]["per_domain"]["Vehicle"]) >= {"JSD", "MMD", "FRID", "seconds_per_scan"}
+    vehicle = t["points"][0]["per_domain"]["Vehicle"]
+    assert set(vehicle) >= {"JSD", "MMD", "FRID", "JSD_std", "FRID_groups", "seconds_per_scan"}
+    assert vehicle["scans_per_group"] == 2 and len(vehicle["FRID_groups"]) == 2
+    assert vehicle["JSD"] == pytest.approx(np.mean(vehicle["JSD_groups"]))
+    # Best solver per budget of network evaluations, among every setting of that budget.
+    assert set(t["best_per_budget"]) == {"1", "2"} and t["best_per_budget"]["2"]["JSD"]["candidates"] == 2
+    # The one-step student and DDIM x 1 sample the same untrained network the same way.
+    assert t["points"][-1]["mean_JSD"] == pytest.approx(t["points"][0]["mean_JSD"])
     assert t["effects"][0]["name"] == "fog:samples" and t["downstream"] == []  # no GDA curve given
     assert (r / "t.png").stat().st_size > 1000
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 from omnilidar.commands._common import data_source_arg, report_outputs_arg, seed_arg, settings_arg
 from omnilidar.metrics.sample_sets import sample_set_arg
 
-HELP = "measure per-domain JSD/MMD/feature metric and seconds per scan for every sampler and step count"
+HELP = "measure per-domain JSD/MMD/feature metrics and seconds per scan for every sampler and step count"
 DATA_FILES = ("workflow/schemas/evaluation.schema.yaml",)  # run time reads (omnilidar.provenance)
 
 # A point is "recommended" when it is the fastest whose mean metric is within this factor of the best.
@@ -19,6 +19,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--domains", required=True)
     parser.add_argument("--prompts", required=True)
     parser.add_argument("--checkpoint", required=True, help="full OmniLiDAR checkpoint")
+    parser.add_argument("--student", default=None, help="its distilled student (with evaluation.tradeoff.student)")
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
     parser.add_argument("--effects", default=None, help="results/effects_tradeoff.json (optional)")
     parser.add_argument("--gda-curve", default=None,
@@ -63,19 +64,56 @@ def downstream_curve(path) -> tuple[list[dict], dict | None]:
     return rows, {"source": str(path), **(doc.get("setup") or {})}
 
 
+def group_scores(real, generated, extractors, groups: int, metrics: list[str]) -> dict:
+    """Each metric's mean and std over ``groups`` disjoint groups of the generated scans (their
+    sampling seeds differ), each scored against the whole real set."""
+    import numpy as np
+
+    from omnilidar.metrics.generation import compare
+
+    size = generated.num_scans // groups
+    runs = [compare(real, generated.rows(slice(g * size, (g + 1) * size)), extractors) for g in range(groups)]
+    out = {"weights": runs[0]["weights"], "comparable_with_paper": runs[0]["comparable_with_paper"],
+           "scans_per_group": size}
+    for m in metrics:
+        vals = [r.get("MMD_1e4" if m == "MMD" else m) for r in runs]
+        ok = all(v is not None for v in vals)
+        out[m] = float(np.mean(vals)) if ok else None
+        out[f"{m}_std"] = float(np.std(vals, ddof=1)) if ok and groups > 1 else None
+        out[f"{m}_groups"] = vals
+    return out
+
+
+def best_per_budget(points: list[dict], metrics: list[str]) -> dict:
+    """{network evaluations: {metric: the point (solver and spacing) with the lowest mean}}."""
+    best = {}
+    for nfe in sorted({p["steps"] for p in points}):
+        here = [p for p in points if p["steps"] == nfe]
+        row = {}
+        for m in metrics:
+            ok = [p for p in here if p[f"mean_{m}"] is not None]
+            if ok:
+                pick = min(ok, key=lambda p: p[f"mean_{m}"])
+                row[m] = {"sampler": pick["sampler"], "value": pick[f"mean_{m}"], "std": pick.get(f"std_{m}"),
+                          "candidates": len(ok)}
+        best[str(nfe)] = row
+    return best
+
+
 def run(args) -> int:
     import time
 
     import numpy as np
 
     from omnilidar.config import validate
+    from omnilidar.errors import InputError
     from omnilidar.generator.text import load_prompt_cache
     from omnilidar.devices import resolve_device
     from omnilidar.generator.checkpoint import load_generator
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors import METRIC_NAMES
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
-    from omnilidar.metrics.generation import compare, real_domain_images, sample_images, set_features
+    from omnilidar.metrics.generation import real_domain_images, sample_images, set_features
     from omnilidar.metrics.sample_sets import generated_set, parse_sample_sets
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import collect_weights, pareto_front, tradeoff_figure, write_outputs
@@ -84,10 +122,17 @@ def run(args) -> int:
     # Read before the long sampling study so that a bad curve file fails at once.
     downstream, downstream_setup = downstream_curve(args.gda_curve)
     cfg = settings["tradeoff"]
-    feat = cfg["feature_metric"]
-    weights = {k: v for k, v in parse_pairs(args.weights, "--weights").items() if METRIC_NAMES.get(k) == feat}
-    extractors = load_extractors(weights, [feat])
-    den, payload = load_generator(args.checkpoint, resolve_device(settings["device"], "evaluation.device"))
+    feats = list(cfg["feature_metrics"])
+    groups = int(cfg["seed_groups"])
+    if cfg["scans"] < groups:
+        raise InputError(None, f"evaluation.tradeoff: {cfg['scans']} scans cannot form {groups} seed groups")
+    if cfg["student"] and not args.student:
+        raise InputError(None, "evaluation.tradeoff.student is set: give the distilled student (--student)")
+    metrics = ["JSD", "MMD", *feats]
+    weights = {k: v for k, v in parse_pairs(args.weights, "--weights").items() if METRIC_NAMES.get(k) in feats}
+    extractors = load_extractors(weights, feats)
+    device = resolve_device(settings["device"], "evaluation.device")
+    den, payload = load_generator(args.checkpoint, device)
     spec = range_image_spec(payload["config"])
     cache = load_prompt_cache(args.prompts)
     sets = parse_sample_sets(args.samples)
@@ -97,31 +142,43 @@ def run(args) -> int:
     # One untimed step so that lazy initialisation is not charged to the first setting.
     if not sets:
         sample_images(den, payload, cache, domains[0], 1, "ddim", 1, args.seed, 1)
+    settings_list = [(sampler, steps, den, payload) for sampler, steps_list in cfg["samplers"].items()
+                     for steps in steps_list]
+    if cfg["student"]:
+        student, student_payload = load_generator(args.student, device)
+        if not student_payload.get("student"):
+            raise InputError(args.student, "not a distilled student (distill_generator's output)")
+        settings_list.append(("student", int(student_payload["student"]["steps"]), student, student_payload))
     t_all = time.perf_counter()
     points = []
-    for sampler, steps_list in cfg["samplers"].items():
-        for steps in steps_list:
-            per_domain, secs = {}, []
-            for d in domains:
-                gen, sec = generated_set(sets, f"{sampler}-{steps}/{d}", den, payload, cache, d, cfg["scans"],
-                                         sampler, steps, args.seed, settings["batch_size"])
-                s = compare(real[d], set_features(gen, spec, extractors, settings["batch_size"]), extractors)
-                per_domain[d] = {"JSD": s.get("JSD"), "MMD": s.get("MMD_1e4"), feat: s.get(feat),
-                                 "seconds_per_scan": sec, "weights": s["weights"],
-                                 "comparable_with_paper": s["comparable_with_paper"]}
-                secs.append(sec)
-            secs = [s for s in secs if s is not None]  # shards fully resumed record no time
-            point = {"sampler": sampler, "steps": steps, "seconds_per_scan": float(np.mean(secs)) if secs else None,
-                     "per_domain": per_domain}
-            for m in ("JSD", "MMD", feat):
-                vals = [v[m] for v in per_domain.values()]
-                point[f"mean_{m}"] = float(np.mean(vals)) if all(v is not None for v in vals) else None
-            points.append(point)
-            print(f"{sampler} x {steps}: {point['seconds_per_scan']:.3f} s/scan, JSD {point['mean_JSD']}, "
-                  f"{feat} {point[f'mean_{feat}']}", flush=True)
+    for sampler, steps, model, model_payload in settings_list:
+        per_domain, secs = {}, []
+        for d in domains:
+            # The student samples with DDIM in its own steps (omnilidar sample decides that too).
+            solver = "ddim" if sampler == "student" else sampler
+            gen, sec = generated_set(sets, f"{sampler}-{steps}/{d}", model, model_payload, cache, d, cfg["scans"],
+                                     solver, steps, args.seed, settings["batch_size"])
+            scores = group_scores(real[d], set_features(gen, spec, extractors, settings["batch_size"]), extractors,
+                                  groups, metrics)
+            per_domain[d] = {**scores, "seconds_per_scan": sec}
+            secs.append(sec)
+        secs = [s for s in secs if s is not None]  # shards fully resumed record no time
+        point = {"sampler": sampler, "steps": steps, "network_evaluations": steps,
+                 "seconds_per_scan": float(np.mean(secs)) if secs else None, "per_domain": per_domain}
+        for m in metrics:
+            vals = [v[m] for v in per_domain.values()]
+            stds = [v[f"{m}_std"] for v in per_domain.values()]
+            point[f"mean_{m}"] = float(np.mean(vals)) if all(v is not None for v in vals) else None
+            # Spread of the domain mean over the seed groups (the groups' errors are independent).
+            point[f"std_{m}"] = (float(np.sqrt(np.sum(np.square(stds)))) / len(stds)
+                                 if all(v is not None for v in stds) else None)
+        points.append(point)
+        print(f"{sampler} x {steps}: {point['seconds_per_scan']} s/scan, "
+              + ", ".join(f"{m} {point[f'mean_{m}']}" for m in metrics), flush=True)
     recommended = {}
-    for m in ("JSD", "MMD", feat):
-        ok = [p for p in points if p[f"mean_{m}"] is not None]
+    timed = [p for p in points if p["seconds_per_scan"] is not None]
+    for m in metrics:
+        ok = [p for p in timed if p[f"mean_{m}"] is not None]
         flags = pareto_front([p["seconds_per_scan"] for p in ok], [p[f"mean_{m}"] for p in ok])
         for p in points:
             p.setdefault("pareto", {})[m] = False
@@ -135,11 +192,16 @@ def run(args) -> int:
                               "seconds_per_scan": pick["seconds_per_scan"], "value": pick[f"mean_{m}"]}
     w, comparable = collect_weights({i: p["per_domain"] for i, p in enumerate(points)})
     result = envelope(
-        "tradeoff", "sampler-tradeoff", settings, {"seed": args.seed}, {"sampling_study": time.perf_counter() - t_all},
-        args.data_source, device_note="timings measured in this one run on the device named above",
-        feature_metric=feat, domains=domains, scans_per_setting=cfg["scans"], real_scans=settings["scans_per_set"],
-        weights=w, comparable_with_paper=comparable, points=points, recommended=recommended,
+        "tradeoff", "sampler-tradeoff", settings, {"seed": args.seed, "seed_groups": groups},
+        {"sampling_study": time.perf_counter() - t_all}, args.data_source,
+        device_note="timings measured in this one run on the device named above",
+        feature_metrics=feats, metrics=metrics, domains=domains, scans_per_setting=cfg["scans"],
+        real_scans=settings["scans_per_set"], weights=w, comparable_with_paper=comparable, points=points,
+        best_per_budget=best_per_budget(points, metrics), recommended=recommended,
         recommend_rule=f"fastest setting whose mean metric is within {TOLERANCE:.2f}x of the best",
+        spread_rule=(f"each domain's metric is the mean over {groups} groups of scans with distinct sampling seeds; "
+                     "std_<metric> is the spread over those groups of the mean over domains (the domains' group "
+                     "spreads combined as independent)"),
         effects=effect_curves(args.effects), downstream=downstream, downstream_setup=downstream_setup,
     )
     write_outputs(result, args.out)

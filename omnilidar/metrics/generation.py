@@ -44,6 +44,11 @@ class FeatureSet:
     seconds: dict[str, float] = field(default_factory=dict)  # kind -> extraction time
 
 
+    def rows(self, index) -> "FeatureSet":
+        """The scans ``index`` (a slice or index array) of this set; extraction times are not split."""
+        return FeatureSet(len(self.bev[index]), self.bev[index], {k: v[index] for k, v in self.features.items()})
+
+
 def set_features(images, spec: RangeImageSpec, extractors: dict, batch_size: int = 8, source=None) -> FeatureSet:
     """Protocol views, BEV histograms and features of a set of (N, 2, H, W) range images.
 

@@ -125,16 +125,17 @@ def pareto_front(seconds: list[float], errors: list[float]) -> list[bool]:
 
 
 def tradeoff_figure(path, tradeoff: dict) -> None:
-    """Metric against seconds per scan per sampler (Pareto front marked), the domain
-    effects' error/time curves, and downstream mIoU against the total compute of the
-    generated scans (points labelled with their number) when a GDA curve was read."""
+    """Each metric against network evaluations per solver (mean and spread over the seed groups;
+    the distilled student as a star), the domain effects' error/time curves, and downstream mIoU
+    against the total compute of the generated scans (points labelled with their number) when a
+    GDA curve was read."""
     from omnilidar.io.figure import plt, save_figure
 
     from omnilidar.report.gda_curve import draw_miou_vs_compute
     from omnilidar.report.log_axis import readable_log_x
 
     points = tradeoff["points"]
-    metrics = [m for m in ("JSD", "MMD", tradeoff.get("feature_metric")) if m]
+    metrics = tradeoff.get("metrics") or ["JSD", "MMD"]
     extra = [k for k in ("effects", "downstream") if tradeoff.get(k)]
     fig, axes = plt.subplots(1, len(metrics) + len(extra), figsize=(4.2 * (len(metrics) + len(extra)), 3.6),
                              squeeze=False)
@@ -142,16 +143,13 @@ def tradeoff_figure(path, tradeoff: dict) -> None:
         key = f"mean_{metric}"
         for sampler in dict.fromkeys(p["sampler"] for p in points):
             pts = [p for p in points if p["sampler"] == sampler and p.get(key) is not None]
-            ax.plot([p["seconds_per_scan"] for p in pts], [p[key] for p in pts], "o-", label=sampler)
-            for p in pts:
-                ax.annotate(str(p["steps"]), (p["seconds_per_scan"], p[key]), fontsize=7)
-        front = [p for p in points if p.get("pareto", {}).get(metric)]
-        front.sort(key=lambda p: p["seconds_per_scan"])
-        ax.plot([p["seconds_per_scan"] for p in front], [p[key] for p in front], "k--", lw=1, label="Pareto front")
-        ax.set_xlabel("seconds per scan")
+            ax.errorbar([p["steps"] for p in pts], [p[key] for p in pts],
+                        yerr=[p.get(f"std_{metric}") or 0.0 for p in pts], fmt="*" if sampler == "student" else "o-",
+                        ms=10 if sampler == "student" else 4, capsize=2, label=sampler)
+        ax.set_xlabel("network evaluations per scan")
         ax.set_ylabel(f"{metric}{' (x1e-4)' if metric == 'MMD' else ''}, mean over domains")
         readable_log_x(ax)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=6)
     col = len(metrics)
     if tradeoff.get("effects"):
         ax = axes[0, col]
