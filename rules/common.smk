@@ -562,9 +562,23 @@ for _name in GENERATOR_ATTEMPTS:
                  "may not change sampling.scans_per_domain or scans_per_shard (its samples keep the main shard layout).")
 
 
-def generator_attempt_pattern():
-    """Wildcard pattern of the attempts that train their own generator (none: matches nothing)."""
-    return "|".join(GENERATOR_ATTEMPTS) or r"(?!)"
+# Of those, the ones that change more than sampling train their own generator; the others (e.g.
+# sampling from the distilled student) sample the main generator or its student.
+TRAINED_ATTEMPTS = [name for name in GENERATOR_ATTEMPTS if set(STUDY_VARIANTS[name]["generator"]) - {"sampling"}]
+
+
+def generator_attempt_pattern(trained=True):
+    """Wildcard pattern of the attempts that train their own generator, or (``trained=False``) of
+    every attempt that samples its own scans (none: matches nothing)."""
+    return "|".join(TRAINED_ATTEMPTS if trained else GENERATOR_ATTEMPTS) or r"(?!)"
+
+
+def attempt_checkpoint(attempt):
+    """What an attempt samples: its own generator, or the main one (its student where asked)."""
+    if attempt in TRAINED_ATTEMPTS:
+        return f"{GENERATOR}/attempt-{attempt}/model.pt"
+    student = STUDY_VARIANTS[attempt]["generator"].get("sampling", {}).get("student", False)
+    return f"{GENERATOR}/full/{'student' if student else 'model'}.pt"
 
 
 def attempt_generator_settings(name, drop=()):

@@ -186,14 +186,15 @@ rule train_generator_attempt:
 
 
 rule sample_attempt:
-    """One shard of a domain's scans from a decomposition attempt's own generator."""
+    """One shard of a domain's scans for a decomposition attempt that changes the generator: from its
+    own generator, or, where it changes only sampling (e.g. the distilled student), the main one."""
     input:
-        checkpoint=f"{GENERATOR}/attempt-{{attempt}}/model.pt",
+        checkpoint=lambda w: attempt_checkpoint(w.attempt),
         prompts=rules.encode_prompts.output,
     output:
         directory(f"{DATA}/samples/attempt-{{attempt}}/{{domain}}/shard_{{shard}}"),
     wildcard_constraints:
-        attempt=generator_attempt_pattern(),
+        attempt=generator_attempt_pattern(trained=False),
         domain=r"[^/]+",
         shard=r"\d+",
     params:

@@ -174,3 +174,13 @@ def test_the_workflow_samples_from_the_student_when_asked(tmp_path):
     student_jobs = planned_jobs(wf, target, "--configfile", "config/test.yaml", str(tmp_path / "student.yaml"))
     assert "distill_generator" not in teacher_jobs and student_jobs["distill_generator"] == 1
     assert student_jobs["train_generator"] == teacher_jobs["train_generator"] == 1
+
+
+def test_a_decomposition_attempt_samples_the_student_without_retraining(tmp_path):
+    wf = copy_workflow(tmp_path)
+    (tmp_path / "attempt.yaml").write_text(
+        "downstream: {experiments: {gda_decomposition: {attempts: {student: {generator: {sampling: {student: true}}}}}}}\n")
+    jobs = planned_jobs(wf, "data/samples/attempt-student/Vehicle/shard_0", "--configfile", "config/test.yaml",
+                        str(tmp_path / "attempt.yaml"))
+    assert jobs["distill_generator"] == jobs["train_generator"] == jobs["sample_attempt"] == 1
+    assert "train_generator_attempt" not in jobs
