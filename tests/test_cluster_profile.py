@@ -256,3 +256,17 @@ def test_downstream_training_runtimes_follow_their_schedules(tmp_path):
 
     assert int(after["train_labeler"]["runtime"]) == minutes(19130)  # ~11 h: 100 % of the train split
     assert int(after["train_supervised"]["runtime"]) == minutes(191)  # 1 %: minutes, not a flat 10 h
+
+
+def test_sampling_from_the_student_asks_for_its_steps_and_its_distillation_fits(workdir, tmp_path):
+    (tmp_path / "student.yaml").write_text("generator: {sampling: {student: true}}\n")
+    target = ("--", "data/samples/Vehicle/shard_0")
+    teacher = _dry_run_resources(workdir, *PAPER, *target)
+    student = _dry_run_resources(workdir, *PAPER, str(tmp_path / "student.yaml"), *target)
+    assert "distill_generator" not in teacher
+    distill = student["distill_generator"]
+    assert distill["slurm_partition"] == "gpu" and distill["gpu"] == "1"
+    # 60k distillation steps of ~5/3 a training step against the generator's 500k: about a fifth.
+    assert 0.15 < int(distill["runtime"]) / int(student["train_generator"]["runtime"]) < 0.25
+    # A 500-scan shard in the student's 4 DDIM steps instead of DDPM x 256.
+    assert int(student["sample_domain"]["runtime"]) < int(teacher["sample_domain"]["runtime"]) / 4
