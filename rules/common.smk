@@ -260,6 +260,13 @@ def weights_args(weights):
 STUDENT_STEPS = config["generator"]["distillation"]["teacher_steps"] >> config["generator"]["distillation"]["rounds"]
 
 
+def tradeoff_default_sampler():
+    """--default-sampler for the sampler study when the generator's own sampler is in its grid."""
+    gen = config["generator"]["sampling"]
+    grid = config["evaluation"]["tradeoff"]["samplers"]
+    return f" --default-sampler {gen['sampler']}:{gen['steps']}" if gen["steps"] in grid.get(gen["sampler"], []) else ""
+
+
 def sampling_checkpoint(preset):
     """What sample_domain samples: the trained generator, or its distilled student."""
     name = "student.pt" if config["generator"]["sampling"]["student"] else "model.pt"

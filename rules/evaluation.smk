@@ -252,7 +252,7 @@ rule sampler_tradeoff:
     params:
         settings=eval_settings("tradeoff"),
         seed=config["seed"],
-        student=" ".join(f"--student {p}" for p in TRADEOFF_STUDENT),
+        student=" ".join(f"--student {p}" for p in TRADEOFF_STUDENT) + tradeoff_default_sampler(),
         weights=weights_args(TRADEOFF_WEIGHTS),
         samples=sets_args(TRADEOFF_SETS),
         data_source=data_source(),

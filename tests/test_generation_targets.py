@@ -162,7 +162,7 @@ def test_sampler_tradeoff_one_run(fixture_dir):
             "--weights", f"fpd={r / 'fpd.pt'}", "--effects", str(r / "effects.json"),
             "--settings", settings, "--out", str(r / "t.json"), "--figure", str(r / "t.png")]
     assert main(args) == 2 and not (r / "t.json").exists()  # the student is asked for but not given
-    assert main([*args, "--student", str(r / "student.pt")]) == 0
+    assert main([*args, "--student", str(r / "student.pt"), "--default-sampler", "ddim:2"]) == 0
     t = json.loads((r / "t.json").read_text())
     assert [(p["sampler"], p["steps"]) for p in t["points"]] == [
         ("ddim", 1), ("ddim", 2), ("dpmpp_2m", 1), ("unipc_karras", 2), ("student", 1)]
@@ -176,6 +176,15 @@ def test_sampler_tradeoff_one_run(fixture_dir):
     assert set(t["best_per_budget"]) == {"1", "2"} and t["best_per_budget"]["2"]["JSD"]["candidates"] == 2
     # The one-step student and DDIM x 1 sample the same untrained network the same way.
     assert t["points"][-1]["mean_JSD"] == pytest.approx(t["points"][0]["mean_JSD"])
+    check = t["student_check"]
+    assert check["decided_by"] == ["JSD", "MMD"] and set(check["metrics"]) == {"JSD", "MMD", "FRID"}
+    jsd = check["metrics"]["JSD"]
+    best = min((p for p in t["points"][:-1]), key=lambda p: p["mean_JSD"])
+    assert jsd["teacher_best"] == {"sampler": best["sampler"], "steps": best["steps"]}
+    row = jsd["per_domain"]["Vehicle"]
+    assert row["excess"] == pytest.approx(row["student"] - row["teacher"]) and row["held"] == (row["excess"] <= 2 * row["spread"])
+    assert check["held"] == all(not check["metrics"][m]["missed"] for m in ("JSD", "MMD"))
+    assert check["default_sampler"]["steps"] == 2 and check["speedup_over_default"] > 0
     assert t["effects"][0]["name"] == "fog:samples" and t["downstream"] == []  # no GDA curve given
     assert (r / "t.png").stat().st_size > 1000
 

@@ -20,6 +20,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--prompts", required=True)
     parser.add_argument("--checkpoint", required=True, help="full OmniLiDAR checkpoint")
     parser.add_argument("--student", default=None, help="its distilled student (with evaluation.tradeoff.student)")
+    parser.add_argument("--default-sampler", default=None, metavar="NAME:STEPS",
+                        help="the generator's own sampler (generator.sampling), measured beside the student")
     parser.add_argument("--weights", action="append", default=[], metavar="KIND=PATH")
     parser.add_argument("--effects", default=None, help="results/effects_tradeoff.json (optional)")
     parser.add_argument("--gda-curve", default=None,
@@ -100,6 +102,46 @@ def best_per_budget(points: list[dict], metrics: list[str]) -> dict:
     return best
 
 
+def student_check(points: list[dict], metrics: list[str], default: tuple[str, int] | None) -> dict | None:
+    """Whether the distilled student holds the teacher's quality: per metric, the teacher's best
+    setting (lowest mean over domains) against the student, domain by domain; held where the
+    student is worse by at most two standard deviations of the difference (the two settings' seed
+    group spreads combined). JSD and MMD decide; the feature metrics are reported beside. With the
+    generator's default sampler among the points, the student's speed-up over it."""
+    import math
+
+    student = next((p for p in points if p["sampler"] == "student"), None)
+    teachers = [p for p in points if p["sampler"] != "student"]
+    if student is None or not teachers:
+        return None
+    out = {"student_steps": student["steps"], "decided_by": ["JSD", "MMD"], "metrics": {}}
+    for m in metrics:
+        ok = [p for p in teachers if p[f"mean_{m}"] is not None]
+        if not ok or student[f"mean_{m}"] is None:
+            continue
+        best = min(ok, key=lambda p: p[f"mean_{m}"])
+        per_domain = {}
+        for d, mine in student["per_domain"].items():
+            theirs = best["per_domain"][d]
+            spreads = (mine.get(f"{m}_std"), theirs.get(f"{m}_std"))
+            spread = math.hypot(*spreads) if None not in spreads else None
+            excess = mine[m] - theirs[m]
+            per_domain[d] = {"student": mine[m], "teacher": theirs[m], "excess": excess, "spread": spread,
+                             "held": bool(spread is not None and excess <= 2 * spread)}
+        out["metrics"][m] = {"teacher_best": {"sampler": best["sampler"], "steps": best["steps"]},
+                             "per_domain": per_domain,
+                             "missed": {d: r["excess"] for d, r in per_domain.items() if not r["held"]}}
+    decided = [out["metrics"][m] for m in out["decided_by"] if m in out["metrics"]]
+    out["held"] = bool(decided) and all(not r["missed"] for r in decided)
+    if default is not None:
+        base = next((p for p in teachers if (p["sampler"], p["steps"]) == default), None)
+        if base is not None and base["seconds_per_scan"] and student["seconds_per_scan"]:
+            out["default_sampler"] = {"sampler": default[0], "steps": default[1],
+                                      "seconds_per_scan": base["seconds_per_scan"]}
+            out["speedup_over_default"] = base["seconds_per_scan"] / student["seconds_per_scan"]
+    return out
+
+
 def run(args) -> int:
     import time
 
@@ -129,6 +171,14 @@ def run(args) -> int:
     if cfg["student"] and not args.student:
         raise InputError(None, "evaluation.tradeoff.student is set: give the distilled student (--student)")
     metrics = ["JSD", "MMD", *feats]
+    default = None
+    if args.default_sampler:
+        name, _, steps = args.default_sampler.partition(":")
+        if not steps.isdigit():
+            raise InputError(None, f"--default-sampler takes NAME:STEPS, got {args.default_sampler!r}")
+        default = (name, int(steps))
+        if int(steps) not in cfg["samplers"].get(name, []):
+            raise InputError(None, f"the default sampler {args.default_sampler} is not among evaluation.tradeoff.samplers")
     weights = {k: v for k, v in parse_pairs(args.weights, "--weights").items() if METRIC_NAMES.get(k) in feats}
     extractors = load_extractors(weights, feats)
     device = resolve_device(settings["device"], "evaluation.device")
@@ -198,6 +248,7 @@ def run(args) -> int:
         feature_metrics=feats, metrics=metrics, domains=domains, scans_per_setting=cfg["scans"],
         real_scans=settings["scans_per_set"], weights=w, comparable_with_paper=comparable, points=points,
         best_per_budget=best_per_budget(points, metrics), recommended=recommended,
+        student_check=student_check(points, metrics, default),
         recommend_rule=f"fastest setting whose mean metric is within {TOLERANCE:.2f}x of the best",
         spread_rule=(f"each domain's metric is the mean over {groups} groups of scans with distinct sampling seeds; "
                      "std_<metric> is the spread over those groups of the mean over domains (the domains' group "
