@@ -113,7 +113,7 @@ def run_cost(doc: dict) -> str:
 
 
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
-             "run_cost": run_cost}
+             "run_cost": run_cost, "run_cost_decomposition": run_cost}
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
