@@ -4,6 +4,7 @@ sampling with the student in every domain, and the workflow's wiring."""
 from __future__ import annotations
 
 import copy
+import shutil
 
 import numpy as np
 import pytest
@@ -135,8 +136,6 @@ def test_an_interrupted_distillation_resumes_to_the_same_student(teacher, tmp_pa
 def test_changed_distillation_settings_or_teacher_start_afresh(teacher, tmp_path):
     root, settings, index, prompts, _ = teacher
     work = tmp_path / "work"
-    import shutil
-
     shutil.copytree(root / "student_work", work)
     other = copy.deepcopy(settings)
     other["distillation"]["lr"] = 3e-3

@@ -204,8 +204,8 @@ def run(args) -> int:
     for sampler, steps, model, model_payload in settings_list:
         per_domain, secs = {}, []
         for d in domains:
-            # The student samples with DDIM in its own steps (omnilidar sample decides that too).
-            solver = "ddim" if sampler == "student" else sampler
+            # The student samples with the solver its checkpoint names, in its own steps.
+            solver = model_payload["student"]["sampler"] if sampler == "student" else sampler
             gen, sec = generated_set(sets, f"{sampler}-{steps}/{d}", model, model_payload, cache, d, cfg["scans"],
                                      solver, steps, args.seed, settings["batch_size"])
             scores = group_scores(real[d], set_features(gen, spec, extractors, settings["batch_size"]), extractors,
