@@ -18,6 +18,7 @@ import shlex
 import sys
 
 from omnilidar import __version__, commands
+from omnilidar.allocator import keep_freed_memory
 from omnilidar.errors import InputError
 
 
@@ -57,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     if not sys.stderr.isatty():
         # Logs start with the exact line that reruns this stage by hand.
         print("$ omnilidar " + shlex.join(sys.argv[1:] if argv is None else argv), file=sys.stderr, flush=True)
+    keep_freed_memory()
     try:
         code = args._run(args)
     except InputError as err:

@@ -51,3 +51,35 @@ def test_input_error_is_one_line_and_exit_2(tmp_path, capsys):
     assert err[-1].startswith("omnilidar index-dataset: error: ")
     assert str(missing) in err[-1] and "not found" in err[-1]
     assert not (tmp_path / "i.json").exists()
+
+
+
+ALLOCATOR_PROBE = """
+import ctypes, sys
+import numpy as np
+if sys.argv[1] == "keep":
+    from omnilidar.allocator import keep_freed_memory
+    assert keep_freed_memory()
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in
+                ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+mallinfo2 = ctypes.CDLL(None).mallinfo2
+mallinfo2.restype = MallInfo2
+block = np.ones(64 * 2**20, np.uint8)  # 64 MB: above glibc's largest mmap threshold
+mapped = mallinfo2().hblkhd
+del block
+print(mapped >= 64 * 2**20, mallinfo2().fordblks >= 64 * 2**20)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def test_keep_freed_memory_serves_big_blocks_from_the_heap_and_keeps_them():
+    """Every stage keeps freed tensors' memory for the next one: by default glibc maps a 64 MB
+    block afresh and unmaps it on free; once told to keep freed memory, it serves the block from
+    the heap and keeps it after the free."""
+    def probe(mode: str) -> str:
+        return subprocess.run([sys.executable, "-c", ALLOCATOR_PROBE, mode], capture_output=True, text=True,
+                              check=True).stdout.strip()
+
+    assert probe("default") == "True False"
+    assert probe("keep") == "False True"
