@@ -99,6 +99,29 @@ def test_trilinear_devoxelisation_reproduces_a_linear_field():
     torch.testing.assert_close(devoxelize(x, rows, w)[:, 0], p[:, 1].double(), rtol=1e-6, atol=1e-6)
 
 
+def test_devoxelisation_and_its_gradient_equal_the_dense_interpolation_matrix():
+    """The sparse product (CPU) reads the same features and sends back the same gradient as
+    the dense (P, N) matrix of the neighbours' weights, absent neighbours included."""
+    gen = torch.Generator().manual_seed(0)
+    num_points, num_voxels = 200, 30
+    rows = torch.randint(0, num_voxels, (num_points, 8), generator=gen)
+    rows[torch.rand(num_points, 8, generator=gen) < 0.4] = -1
+    rows[:, 0] = torch.randint(0, num_voxels, (num_points,), generator=gen)  # own voxel: always present
+    w = torch.rand(num_points, 8, generator=gen) * (rows >= 0)
+    w = w / w.sum(1, keepdim=True)
+    dense = torch.zeros(num_points, num_voxels, dtype=torch.float64)
+    for k in range(8):
+        present = rows[:, k] >= 0
+        dense[present.nonzero()[:, 0], rows[present, k]] += w[present, k].double()
+    feats = torch.randn(num_voxels, 5, generator=gen, dtype=torch.float64, requires_grad=True)
+    x = SparseTensor(feats, torch.zeros(num_voxels, 4, dtype=torch.int32), (1, 1, 1), 1)
+    grad_out = torch.randn(num_points, 5, generator=gen, dtype=torch.float64)
+    out = devoxelize(x, rows, w)
+    (grad,) = torch.autograd.grad(out, feats, grad_out)
+    torch.testing.assert_close(out, dense @ feats)
+    torch.testing.assert_close(grad, dense.T @ grad_out)
+
+
 def test_widths_and_depths():
     m = minkunet("W32", backend="torch")
     assert m.trunk.encoder_channels == (32, 64, 128, 256) and m.classifier.in_features == 96

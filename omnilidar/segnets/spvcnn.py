@@ -16,8 +16,11 @@ always present, so the sum is never 0).
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from omnilidar.segnets.minkunet import NUM_SEG_CLASSES, UNetTrunk, concat, init_weights, network_input
 from omnilidar.segnets.voxelize import SegBatch
@@ -56,10 +59,47 @@ def trilinear_weights(x: SparseTensor, points: torch.Tensor, stride: int) -> tup
     return rows, w
 
 
+class _Interpolate(torch.autograd.Function):
+    """``matrix @ feats``, with the transposed matrix for the gradient (both CSR)."""
+
+    @staticmethod
+    def forward(ctx, feats: torch.Tensor, matrix: torch.Tensor, transposed: torch.Tensor) -> torch.Tensor:
+        ctx.transposed = transposed
+        return matrix @ feats
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: torch.Tensor):
+        return ctx.transposed @ grad.contiguous(), None, None
+
+
+def interpolation_matrices(rows: torch.Tensor, weights: torch.Tensor, num_voxels: int):
+    """The ``(P, N)`` interpolation matrix of ``rows``/``weights`` and its transpose, both CSR."""
+    present = rows >= 0
+    per_point = present.sum(1)
+    cols, values = rows[present], weights[present]  # point-major: rows of the matrix in order
+    point_ptr = torch.zeros(len(rows) + 1, dtype=torch.int64, device=rows.device)
+    point_ptr[1:] = per_point.cumsum(0)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        matrix = torch.sparse_csr_tensor(point_ptr, cols, values, (len(rows), num_voxels), check_invariants=False)
+    order = torch.argsort(cols, stable=True)
+    points = torch.arange(len(rows), device=rows.device).repeat_interleave(per_point)
+    voxel_ptr = torch.zeros(num_voxels + 1, dtype=torch.int64, device=rows.device)
+    voxel_ptr[1:] = torch.bincount(cols, minlength=num_voxels).cumsum(0)
+    transposed = torch.sparse_csr_tensor(voxel_ptr, points[order], values[order], (num_voxels, len(rows)),
+                                         check_invariants=False)
+    return matrix, transposed
+
+
 def devoxelize(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Point features ``(P, C)`` interpolated from voxel features."""
-    # One corner at a time: never materialises a (P, 8, C) tensor.
     w = weights.to(x.feats.dtype)
+    if x.feats.device.type == "cpu" and x.feats.dtype in (torch.float32, torch.float64):
+        # One sparse product each way: on a CPU about half the time of eight gathers, whose
+        # gradient scatters 8 P rows into few voxels at the coarse strides.
+        return _Interpolate.apply(x.feats, *interpolation_matrices(rows, w, x.num_voxels))
+    # One corner at a time: never materialises a (P, 8, C) tensor.
     out = None
     for k in range(rows.shape[1]):
         term = x.feats.index_select(0, rows[:, k].clamp_min(0)) * w[:, k, None]
