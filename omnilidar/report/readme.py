@@ -112,8 +112,36 @@ def run_cost(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def student_check(doc: dict) -> str:
+    """The sampler study's settings side by side, and the student against the teacher's best."""
+    metrics = doc["metrics"]
+    heads = [f"{m} (x 1e-4)" if m == "MMD" else m for m in metrics]  # BEV MMD as papers print it
+    lines = ["| sampler | network evaluations | s per scan | " + " | ".join(heads) + " |",
+             "|---|---|---|" + "---|" * len(metrics)]
+    for p in doc["points"]:
+        cells = [f"{p[f'mean_{m}']:.4g} +- {p[f'std_{m}']:.2g}" for m in metrics]
+        lines.append(f"| {p['sampler']} | {p['network_evaluations']} | {p['seconds_per_scan']:.3f} | "
+                     + " | ".join(cells) + " |")
+    check = doc["student_check"]
+    lines.append("")
+    for m in check["decided_by"]:
+        c = check["metrics"][m]
+        best = c["teacher_best"]
+        held = [d for d, v in c["per_domain"].items() if v["held"]]
+        missed = "; misses " + ", ".join(f"{d} by {x:+.3g}" for d, x in c["missed"].items()) if c["missed"] else ""
+        lines.append(f"- {m}: the {check['student_steps']}-step student is within two standard deviations of the "
+                     f"teacher's best ({best['sampler']} x {best['steps']}) in {len(held)} of {len(c['per_domain'])} "
+                     f"domains{missed}.")
+    if check.get("speedup_over_default"):
+        default = check["default_sampler"]
+        lines.append(f"- Speed: {check['speedup_over_default']:.1f}x the default sampler ({default['sampler']} x "
+                     f"{default['steps']}) in seconds per scan, measured in the same run ({doc['device']}).")
+    return "\n".join(lines)
+
+
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
-             "run_cost": run_cost, "run_cost_decomposition": run_cost}
+             "run_cost": run_cost, "run_cost_decomposition": run_cost,
+             "student_check": student_check}
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
