@@ -148,6 +148,7 @@ rule train_supervised:
         f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real.tsv"
     conda:
         ENV
+    priority: training_priority
     threads: 1
     resources:
         **job_resources("train_supervised"),
@@ -183,6 +184,7 @@ rule train_gda:
         f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}.tsv"
     conda:
         ENV
+    priority: training_priority
     threads: 1
     resources:
         **job_resources("train_gda"),
@@ -265,6 +267,7 @@ rule train_gda_curve:
         f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.tsv"
     conda:
         ENV
+    priority: training_priority
     threads: 1
     resources:
         **job_resources("train_gda_curve"),
@@ -321,6 +324,7 @@ rule train_curve_pool:
         f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}.tsv"
     conda:
         ENV
+    priority: training_priority
     threads: 1
     resources:
         **job_resources("train_gda_curve"),
@@ -650,6 +654,7 @@ rule train_study:
         f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.tsv"
     conda:
         ENV
+    priority: training_priority
     threads: 1
     resources:
         **job_resources("train_gda"),
