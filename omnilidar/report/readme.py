@@ -134,8 +134,8 @@ def student_check(doc: dict) -> str:
                      f"domains{missed}.")
     if check.get("speedup_over_default"):
         default = check["default_sampler"]
-        lines.append(f"- Speed: {check['speedup_over_default']:.1f}x the default sampler ({default['sampler']} x "
-                     f"{default['steps']}) in seconds per scan, measured in the same run ({doc['device']}).")
+        lines.append(f"- Speed: {check['speedup_over_default']:.1f}x the generator's own sampler in that run "
+                     f"({default['sampler']} x {default['steps']}) in seconds per scan ({doc['device']}).")
     return "\n".join(lines)
 
 
