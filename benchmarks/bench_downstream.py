@@ -7,7 +7,11 @@ runs in its own process so that its peak memory (max RSS on CPU, max allocated
 on CUDA) is its own. Prints the median step time, iterations per second, peak
 memory and the SPVCNN / MinkUNet time ratio.
 
-    python benchmarks/bench_downstream.py [--steps 5] [--width W16] [--voxel 0.3] [--batch 2]
+With ``--cpu-paths``, SPVCNN on the CPU three ways in one run: as the stages run it (freed memory
+kept for reuse, sparse-product devoxelisation), with glibc's default allocator, and with the eight
+gathers for devoxelisation; medians, peak memory and the ratios.
+
+    python benchmarks/bench_downstream.py [--steps 5] [--width W16] [--voxel 0.3] [--batch 2] [--cpu-paths]
 """
 
 from __future__ import annotations
@@ -25,11 +29,20 @@ sys.path.insert(0, str(ROOT / "tests"))
 from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 
 
-def one(backbone: str, backend: str, width: str, voxel: float, batch: int, steps: int, device: str) -> dict:
+def one(backbone: str, backend: str, width: str, voxel: float, batch: int, steps: int, device: str,
+        keep_freed: bool = True, gathers: bool = False) -> dict:
     import resource
 
     import numpy as np
     import torch
+
+    from omnilidar.allocator import keep_freed_memory
+    from omnilidar.segnets import spvcnn
+
+    if keep_freed:  # as every `omnilidar` stage runs
+        keep_freed_memory()
+    if gathers:  # the devoxelisation other devices use
+        spvcnn.devoxelize = spvcnn.devoxelize_by_gathers
 
     from omnilidar.downstream.seg.dataset import SegCollate
     from omnilidar.downstream.seg.models import build_segmentor, model_spec
@@ -65,18 +78,50 @@ def one(backbone: str, backend: str, width: str, voxel: float, batch: int, steps
             "peak_mib": peak}
 
 
+def child(cfg: dict) -> dict | None:
+    """One configuration in its own single-threaded process (its own peak memory)."""
+    out = subprocess.run([sys.executable, __file__, "--child", json.dumps(cfg)], capture_output=True, text=True,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    if out.returncode:
+        print(f"{cfg}: failed\n{out.stderr[-1500:]}")
+        return None
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def compare_cpu_paths(args) -> None:
+    base = dict(backbone="spvcnn", backend="torch", width=args.width, voxel=args.voxel, batch=args.batch,
+                steps=args.steps, device="cpu")
+    ways = {"as the stages run": {}, "glibc default allocator": {"keep_freed": False},
+            "eight gathers": {"gathers": True}}
+    rows = {}
+    for name, change in ways.items():
+        row = child(base | change)
+        if row is None:
+            return
+        rows[name] = row
+        print(f"spvcnn {args.width} cpu, {name}: {row['voxels']} voxels, {row['points']} points, median step "
+              f"{row['median_s']:.3f} s, peak {row['peak_mib']:.0f} MiB", flush=True)
+    ref = rows["as the stages run"]["median_s"]
+    for name in list(ways)[1:]:
+        print(f"ratio {name} / as the stages run: {rows[name]['median_s'] / ref:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--width", default="W16")
     ap.add_argument("--voxel", type=float, default=0.3)
     ap.add_argument("--batch", type=int, default=2)
+    ap.add_argument("--cpu-paths", action="store_true", help="SPVCNN's CPU allocator and devoxelisation compared")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(one(**json.loads(args.child))))
         return
     real_files_or_exit(KITTI_SCANS)  # one line now, not one per child
+    if args.cpu_paths:
+        compare_cpu_paths(args)
+        return
     import torch
 
     from omnilidar.errors import InputError
@@ -94,14 +139,11 @@ def main() -> None:
     for voxel in voxels:
         for backend in backends:
             for backbone in ("minkunet", "spvcnn"):
-                cfg = dict(backbone=backbone, backend=backend, width=args.width, voxel=voxel, batch=args.batch,
-                           steps=args.steps, device=device)
-                out = subprocess.run([sys.executable, __file__, "--child", json.dumps(cfg)], capture_output=True,
-                                     text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
-                if out.returncode:
-                    print(f"{backbone}/{backend}/{voxel}: failed\n{out.stderr[-1500:]}")
+                row = child(dict(backbone=backbone, backend=backend, width=args.width, voxel=voxel, batch=args.batch,
+                                 steps=args.steps, device=device))
+                if row is None:
                     continue
-                row = json.loads(out.stdout.strip().splitlines()[-1]) | {"voxel": voxel}
+                row = row | {"voxel": voxel}
                 rows.append(row)
                 print(f"{device} {row['backbone']:8s} {row['backend']:6s} {args.width} voxel {voxel:.2f} m "
                       f"batch {args.batch}: {row['voxels']} voxels, {row['points']} points, median step "

@@ -6,7 +6,8 @@
 Reads the run's Snakemake logs (``.snakemake/log/*.snakemake.log``): the first log that built
 ``--target`` gives the elapsed time from its first to its last timestamp and the jobs it finished.
 Disk use is measured per top-level directory the workflow writes (data, work, results, logs,
-benchmarks/out). ``omnilidar docs`` writes docs/troubleshooting.md's block from the file, so the
+benchmarks/out). The jobs' own Snakemake benchmark files (benchmarks/out/**/*.tsv) give the CPU
+and wall seconds the jobs held, in all and per folder of job kind. ``omnilidar docs`` writes docs/troubleshooting.md's block from the file, so the
 numbers there come from a measured run, not from hand.
 """
 
@@ -44,6 +45,22 @@ def disk_mb(path: Path) -> float:
     return round(int(out.split()[0]) / 1024, 1)
 
 
+def job_seconds(run_dir: Path) -> dict:
+    """CPU and wall seconds of the run's jobs from their benchmark files, in all and per folder."""
+    groups: dict[str, dict[str, float]] = {}
+    for tsv in sorted((run_dir / "benchmarks" / "out").rglob("*.tsv")):
+        head, last = tsv.read_text().strip().splitlines()[0].split("\t"), tsv.read_text().strip().splitlines()[-1]
+        row = dict(zip(head, last.split("\t")))
+        group = str(tsv.parent.relative_to(run_dir / "benchmarks" / "out"))
+        g = groups.setdefault(group, {"jobs": 0, "cpu": 0.0, "wall": 0.0})
+        g["jobs"] += 1
+        g["cpu"] += float(row["cpu_time"])
+        g["wall"] += float(row["s"])
+    rounded = {k: {"jobs": v["jobs"], "cpu": round(v["cpu"], 1), "wall": round(v["wall"], 1)} for k, v in groups.items()}
+    return {"cpu": round(sum(v["cpu"] for v in groups.values()), 1),
+            "wall": round(sum(v["wall"] for v in groups.values()), 1), "by_folder": rounded}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run-dir", type=Path, required=True, help="the clone the run happened in")
@@ -56,7 +73,8 @@ def main() -> None:
                             text=True).stdout.strip() or None
     doc = {"experiment": "run_cost", "target": args.target, "commit": commit, "log": log.name,
            "elapsed_seconds": seconds, "jobs": jobs,
-           "disk_mb": {d: disk_mb(args.run_dir / d) for d in OUTPUT_DIRS}}
+           "disk_mb": {d: disk_mb(args.run_dir / d) for d in OUTPUT_DIRS},
+           "job_seconds": job_seconds(args.run_dir)}
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(json.dumps(doc, indent=2))
 

@@ -58,3 +58,18 @@ def test_readme_is_a_front_door():
     assert len(text.splitlines()) < 200
     for link in set(re.findall(r"\]\((docs/[^)#]+)\)", text)):
         assert (ROOT / link).is_file(), link
+
+
+def test_a_short_block_renders_the_same_file_in_one_line(tmp_path):
+    doc = {"target": "results/semkitti_1pct.json", "commit": "abc1234", "elapsed_seconds": 1158.0, "jobs": 63,
+           "disk_mb": {"data": 1024.0, "work": 512.0},
+           "job_seconds": {"cpu": 120.0, "wall": 150.0, "by_folder": {"downstream/train": {"jobs": 2, "cpu": 120.0,
+                                                                                            "wall": 150.0}}}}
+    (tmp_path / "run_cost.json").write_text(json.dumps(doc))
+    page = tmp_path / "page.md"
+    page.write_text("<!-- results:run_cost.short -->\n<!-- /results:run_cost.short -->\n"
+                    "<!-- results:run_cost -->\n<!-- /results:run_cost -->\n")
+    assert main(["docs", str(page), "--results", str(tmp_path)]) == 0
+    short, full = page.read_text().split("<!-- results:run_cost -->")
+    assert "19 min 18 s, 63 jobs" in short and "1.5 GB on disk" in short and "|" not in short
+    assert "| `downstream/train` | 2 | 2.0 | 2.5 |" in full and "The jobs held 2.0 CPU-minutes" in full

@@ -1,7 +1,8 @@
 """Result blocks of README and docs, written from result JSON files so that they cannot drift.
 
 A page holds blocks between ``<!-- results:NAME -->`` and ``<!-- /results:NAME -->``; each
-block is rendered from ``<results>/NAME.json`` by the function of that name below. ``omnilidar
+block is rendered from ``<results>/NAME.json`` by the function of that name below (``NAME.short``:
+the same file, a shorter rendering). ``omnilidar
 docs`` rewrites the blocks; ``--check`` fails when a page and its result files disagree.
 """
 
@@ -13,7 +14,8 @@ from pathlib import Path
 from omnilidar.errors import InputError
 from omnilidar.io.json_file import read_json
 
-BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)", re.S)
+BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9_]+(?:\.short)?) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)",
+                   re.S)
 
 
 def _pm(mean: float, std: float | None, scale: float = 100.0) -> str:
@@ -100,15 +102,27 @@ def gda_budget(doc: dict) -> str:
     return "\n".join(lines)
 
 
-def run_cost(doc: dict) -> str:
-    """Wall time, jobs and disk of one measured run (benchmarks/run_cost.py)."""
+def run_cost_short(doc: dict) -> str:
+    """One line: wall time, jobs and disk of one measured run."""
     minutes, seconds = divmod(round(doc["elapsed_seconds"]), 60)
+    return (f"`{doc['target']}` from a clean clone (commit {doc['commit']}): {minutes} min {seconds:02d} s, "
+            f"{doc['jobs']} jobs, on a 2-core CPU machine, install excluded; it leaves "
+            f"{sum(doc['disk_mb'].values()) / 1024:.1f} GB on disk.")
+
+
+def run_cost(doc: dict) -> str:
+    """Wall time, jobs and disk of one measured run (benchmarks/run_cost.py), and the jobs' time."""
     disk = doc["disk_mb"]
-    lines = [f"`{doc['target']}` from a clean clone (commit {doc['commit']}): {minutes} min {seconds:02d} s, "
-             f"{doc['jobs']} jobs, on a 2-core CPU machine, install excluded.", "",
-             "| directory | disk (MB) |", "|---|---|"]
+    lines = [run_cost_short(doc).split("; it leaves")[0] + ".", "", "| directory | disk (MB) |", "|---|---|"]
     lines += [f"| `{d}/` | {mb:.1f} |" for d, mb in disk.items()]
     lines.append(f"| total | {sum(disk.values()):.0f} |")
+    jobs = doc.get("job_seconds")
+    if jobs:  # the jobs' own benchmark files: where the time went
+        lines += ["", f"The jobs held {jobs['cpu'] / 60:.1f} CPU-minutes ({jobs['wall'] / 60:.1f} job-minutes of wall "
+                      f"time) on the machine's 2 cores:", "",
+                  "| jobs (benchmarks/out/...) | count | CPU minutes | wall minutes |", "|---|---|---|---|"]
+        by = sorted(jobs["by_folder"].items(), key=lambda kv: -kv[1]["wall"])
+        lines += [f"| `{name}` | {g['jobs']} | {g['cpu'] / 60:.1f} | {g['wall'] / 60:.1f} |" for name, g in by]
     return "\n".join(lines)
 
 
@@ -140,7 +154,7 @@ def student_check(doc: dict) -> str:
 
 
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
-             "run_cost": run_cost, "run_cost_decomposition": run_cost,
+             "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
              "student_check": student_check}
 
 
@@ -151,7 +165,7 @@ def render_page(text: str, results: Path, page: str | Path | None = None) -> str
         name = match["name"]
         if name not in RENDERERS:
             raise InputError(page, f"unknown results block {name!r} (known: {', '.join(RENDERERS)})")
-        doc = read_json(Path(results) / f"{name}.json", f"result file of block {name!r} not found")
+        doc = read_json(Path(results) / f"{name.removesuffix('.short')}.json", f"result file of block {name!r} not found")
         return f"{match.group(1)}{RENDERERS[name](doc).rstrip()}\n{match.group(4)}"
 
     return BLOCK.sub(block, text)

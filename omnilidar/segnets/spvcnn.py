@@ -99,6 +99,12 @@ def devoxelize(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor) -> to
         # One sparse product each way: on a CPU about half the time of eight gathers, whose
         # gradient scatters 8 P rows into few voxels at the coarse strides.
         return _Interpolate.apply(x.feats, *interpolation_matrices(rows, w, x.num_voxels))
+    return devoxelize_by_gathers(x, rows, w)
+
+
+def devoxelize_by_gathers(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """:func:`devoxelize` as eight weighted gathers (any device and dtype)."""
+    w = weights.to(x.feats.dtype)
     # One corner at a time: never materialises a (P, 8, C) tensor.
     out = None
     for k in range(rows.shape[1]):
