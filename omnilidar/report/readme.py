@@ -126,8 +126,8 @@ def run_cost(doc: dict) -> str:
     return "\n".join(lines)
 
 
-def student_check(doc: dict) -> str:
-    """The sampler study's settings side by side, and the student against the teacher's best."""
+def sampler_points(doc: dict) -> str:
+    """The sampler study's settings side by side (results/tradeoff.json's points)."""
     metrics = doc["metrics"]
     heads = [f"{m} (x 1e-4)" if m == "MMD" else m for m in metrics]  # BEV MMD as papers print it
     lines = ["| sampler | network evaluations | s per scan | " + " | ".join(heads) + " |",
@@ -136,6 +136,13 @@ def student_check(doc: dict) -> str:
         cells = [f"{p[f'mean_{m}']:.4g} +- {p[f'std_{m}']:.2g}" for m in metrics]
         lines.append(f"| {p['sampler']} | {p['network_evaluations']} | {p['seconds_per_scan']:.3f} | "
                      + " | ".join(cells) + " |")
+    return "\n".join(lines + ["", f"Domains {', '.join(doc['domains'])}; mean over {doc['seeds']['seed_groups']} "
+                                   f"groups of scans with distinct sampling seeds +- their spread; {doc['device']}."])
+
+
+def student_check(doc: dict) -> str:
+    """The sampler study's settings side by side, and the student against the teacher's best."""
+    lines = [sampler_points(doc)]
     check = doc["student_check"]
     lines.append("")
     for m in check["decided_by"]:
@@ -155,7 +162,7 @@ def student_check(doc: dict) -> str:
 
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
              "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
-             "student_check": student_check}
+             "student_check": student_check, "sampler_quickstart": sampler_points}
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
