@@ -12,7 +12,7 @@ from omnilidar import provenance
 
 # Bottom to top. A module may import its own unit and the units of layers below, never above.
 LAYERS = (
-    ("errors", "yaml_load", "dicts", "devices", "progress"),
+    ("errors", "yaml_load", "dicts", "devices", "progress", "allocator"),
     ("manifest", "provenance", "config", "rerun_reasons"),
     ("geometry", "lidar", "sparse"),
     ("segnets",),  # MinkUNet / SPVCNN on the sparse engine
