@@ -63,7 +63,11 @@ if sys.argv[1] == "keep":
 class MallInfo2(ctypes.Structure):
     _fields_ = [(name, ctypes.c_size_t) for name in
                 ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
-mallinfo2 = ctypes.CDLL(None).mallinfo2
+libc = ctypes.CDLL(None)
+if not hasattr(libc, "mallinfo2"):  # glibc older than 2.33
+    print("no mallinfo2")
+    raise SystemExit
+mallinfo2 = libc.mallinfo2
 mallinfo2.restype = MallInfo2
 block = np.ones(64 * 2**20, np.uint8)  # 64 MB: above glibc's largest mmap threshold
 mapped = mallinfo2().hblkhd
@@ -81,5 +85,7 @@ def test_keep_freed_memory_serves_big_blocks_from_the_heap_and_keeps_them():
         return subprocess.run([sys.executable, "-c", ALLOCATOR_PROBE, mode], capture_output=True, text=True,
                               check=True).stdout.strip()
 
+    if probe("default") == "no mallinfo2":
+        pytest.skip("this C library has no mallinfo2 to read the allocator's state with")
     assert probe("default") == "True False"
     assert probe("keep") == "False True"
