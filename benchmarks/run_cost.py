@@ -7,8 +7,9 @@ Reads the run's Snakemake logs (``.snakemake/log/*.snakemake.log``): the first l
 ``--target`` gives the elapsed time from its first to its last timestamp and the jobs it finished.
 Disk use is measured per top-level directory the workflow writes (data, work, results, logs,
 benchmarks/out). The jobs' own Snakemake benchmark files (benchmarks/out/**/*.tsv) give the CPU
-and wall seconds the jobs held, in all and per folder of job kind. ``omnilidar docs`` writes docs/troubleshooting.md's block from the file, so the
-numbers there come from a measured run, not from hand.
+and wall seconds the jobs held, in all and per folder of job kind. ``omnilidar docs`` writes
+docs/troubleshooting.md's block from the file, so the numbers there come from a measured run, not
+from hand.
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ def job_seconds(run_dir: Path) -> dict:
     """CPU and wall seconds of the run's jobs from their benchmark files, in all and per folder."""
     groups: dict[str, dict[str, float]] = {}
     for tsv in sorted((run_dir / "benchmarks" / "out").rglob("*.tsv")):
-        head, last = tsv.read_text().strip().splitlines()[0].split("\t"), tsv.read_text().strip().splitlines()[-1]
-        row = dict(zip(head, last.split("\t")))
+        lines = tsv.read_text().strip().splitlines()
+        row = dict(zip(lines[0].split("\t"), lines[-1].split("\t")))
         group = str(tsv.parent.relative_to(run_dir / "benchmarks" / "out"))
         g = groups.setdefault(group, {"jobs": 0, "cpu": 0.0, "wall": 0.0})
         g["jobs"] += 1

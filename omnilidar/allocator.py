@@ -6,7 +6,8 @@ tensors of tens of megabytes at every layer (a full scan's point features), so e
 of them costs the kernel a fresh run of zeroed pages: SPVCNN's evaluation of 20
 full val scans spent 17 s in the kernel against 19 s computing. With mmap off and
 no trimming, freed blocks are reused: the same evaluation takes half the time, the
-results are bit for bit the same, and the peak resident memory grows about 25 %.
+results are bit for bit the same, and the peak resident memory grows (both measured by
+``python benchmarks/bench_downstream.py --cpu-paths``).
 """
 
 from __future__ import annotations

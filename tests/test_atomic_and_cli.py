@@ -53,7 +53,6 @@ def test_input_error_is_one_line_and_exit_2(tmp_path, capsys):
     assert not (tmp_path / "i.json").exists()
 
 
-
 ALLOCATOR_PROBE = """
 import ctypes, sys
 import numpy as np

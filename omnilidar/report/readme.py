@@ -102,18 +102,21 @@ def gda_budget(doc: dict) -> str:
     return "\n".join(lines)
 
 
-def run_cost_short(doc: dict) -> str:
-    """One line: wall time, jobs and disk of one measured run."""
+def _run_line(doc: dict) -> str:
     minutes, seconds = divmod(round(doc["elapsed_seconds"]), 60)
     return (f"`{doc['target']}` from a clean clone (commit {doc['commit']}): {minutes} min {seconds:02d} s, "
-            f"{doc['jobs']} jobs, on a 2-core CPU machine, install excluded; it leaves "
-            f"{sum(doc['disk_mb'].values()) / 1024:.1f} GB on disk.")
+            f"{doc['jobs']} jobs, on a 2-core CPU machine, install excluded")
+
+
+def run_cost_short(doc: dict) -> str:
+    """One line: wall time, jobs and disk of one measured run."""
+    return f"{_run_line(doc)}; it leaves {sum(doc['disk_mb'].values()) / 1024:.1f} GB on disk."
 
 
 def run_cost(doc: dict) -> str:
     """Wall time, jobs and disk of one measured run (benchmarks/run_cost.py), and the jobs' time."""
     disk = doc["disk_mb"]
-    lines = [run_cost_short(doc).split("; it leaves")[0] + ".", "", "| directory | disk (MB) |", "|---|---|"]
+    lines = [f"{_run_line(doc)}.", "", "| directory | disk (MB) |", "|---|---|"]
     lines += [f"| `{d}/` | {mb:.1f} |" for d, mb in disk.items()]
     lines.append(f"| total | {sum(disk.values()):.0f} |")
     jobs = doc.get("job_seconds")

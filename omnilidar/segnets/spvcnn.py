@@ -99,7 +99,7 @@ def devoxelize(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor) -> to
         # One sparse product each way: on a CPU about half the time of eight gathers, whose
         # gradient scatters 8 P rows into few voxels at the coarse strides.
         return _Interpolate.apply(x.feats, *interpolation_matrices(rows, w, x.num_voxels))
-    return devoxelize_by_gathers(x, rows, w)
+    return devoxelize_by_gathers(x, rows, weights)
 
 
 def devoxelize_by_gathers(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
