@@ -216,7 +216,8 @@ rule pi3det_summary:
     input:
         PI3DET_RESULTS,
     output:
-        "results/figures/pi3det_label_fractions.png",
+        figure="results/figures/pi3det_label_fractions.png",
+        table="results/pi3det_summary.json",
     params:
         code=code("pi3det-summary"),
     log:
@@ -226,7 +227,7 @@ rule pi3det_summary:
     resources:
         **job_resources("pi3det_result"),
     shell:
-        "omnilidar pi3det-summary {input} --figure {output} > {log} 2>&1"
+        "omnilidar pi3det-summary {input} --figure {output.figure} --out {output.table} > {log} 2>&1"
 
 
 rule detection:

@@ -110,20 +110,40 @@ def test_summary_draws_car_ap_against_the_label_fraction(tmp_path):
     paths = []
     for platform in ("drone", "quadruped"):
         for pct, sup, gda in ((1, 0.5, 2.0), (100, 30.0, 28.0)):
-            runs = {det: {"supervised_only": {"ap": {"Car": {"3d_R11@0.5": sup, "3d_R40@0.5": sup}}},
-                          "gda": {"ap": {"Car": {"3d_R11@0.5": gda, "3d_R40@0.5": gda}}}}
+            frames = max(1, 40 * pct // 100)
+            runs = {det: {role: {"ap": {"Car": {"3d_R11@0.5": ap, "3d_R40@0.5": ap / 2}}, "iterations": 120,
+                                 "train_frames": {"real": frames, "generated": 16 if role == "gda" else 0},
+                                 "is_labeler": False}
+                          for role, ap in (("supervised_only", sup), ("gda", gda))}
                     for det in ("voxel_rcnn", "pv_rcnn")}
-            doc = {"platform": platform, "label_percent": pct, "runs": runs,
-                   "labeler": {"val_ap": {"Car": {"3d_R11@0.5": 31.0, "3d_R40@0.5": 28.0}}}}
+            doc = {"platform": platform, "label_percent": pct, "runs": runs, "config_hash": f"c{pct}",
+                   "labeler": {"val_ap": {"Car": {"3d_R11@0.5": 31.0, "3d_R40@0.5": 28.0}},
+                               "pseudo_boxes": {"Car": 8}, "generated_scans": 16},
+                   "labeler_check": {"warning": None}}
             paths.append(tmp_path / f"pi3det_{platform}_{pct}pct.json")
             paths[-1].write_text(json.dumps(doc))
-    figure = tmp_path / "fractions.png"
-    cmd = [sys.executable, "-m", "omnilidar.cli", "pi3det-summary", *map(str, paths), "--figure", str(figure)]
+    figure, table = tmp_path / "fractions.png", tmp_path / "summary.json"
+    cmd = [sys.executable, "-m", "omnilidar.cli", "pi3det-summary", *map(str, paths), "--out", str(table),
+           "--figure", str(figure)]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "drone 100 %: pv_rcnn 30.00 -> 28.00, voxel_rcnn 30.00 -> 28.00" in res.stdout
     assert figure.stat().st_size > 20_000
+    # One row per target in platform and label order, each naming its source file.
+    rows = json.loads(table.read_text())["targets"]
+    assert [(r["platform"], r["label_percent"]) for r in rows] == [("drone", 1), ("drone", 100),
+                                                                   ("quadruped", 1), ("quadruped", 100)]
+    assert rows[1]["runs"]["pv_rcnn"]["gda"]["Car"] == {"3d_R11@0.5": 28.0, "3d_R40@0.5": 14.0}
+    assert rows[1]["runs"]["pv_rcnn"]["real_frames"] == 40 and rows[1]["source"]["file"] == str(paths[1])
+    assert rows[0]["labeler"]["pseudo_boxes"] == {"Car": 8}
+    # docs/detection.md's block renders from it: one line per target.
+    from omnilidar.report.readme import pi3det_summary
+
+    text = pi3det_summary(json.loads(table.read_text()))
+    assert "| drone | 100 | 40 | 30.00 (15.00) -> 28.00 (14.00) | 30.00 (15.00) -> 28.00 (14.00) | 31.00 (28.00) | 8 on 16 |" in text
+    assert "above every supervised-only detector" in text
     paths[0].write_text(json.dumps({"ap": {}}))
+    table.unlink()
     res = subprocess.run(cmd[:-1] + [str(tmp_path / "bad.png")], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 2 and "not a pi3det-result output" in res.stderr and str(paths[0]) in res.stderr
-    assert not (tmp_path / "bad.png").exists()
+    assert not (tmp_path / "bad.png").exists() and not table.exists()

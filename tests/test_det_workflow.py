@@ -47,24 +47,40 @@ def test_every_detection_target_plans(workdir):
     jobs = planned_jobs(workdir, "detection")
     assert jobs["pi3det_result"] == 12
     assert jobs["train_detector_gda"] == 2 * 6 * 2
-    # Voxel R-CNN supervised-only at 100 % is the labeler's training (same detector, frames,
-    # schedule, augmentation and seed): the labeler's checkpoint stands in for it.
-    assert jobs["train_detector_real"] == 2 * 6 * 2 - 2
+    # The labeler trains longer than the runs by default (480 against 120 iterations), so the
+    # supervised-only Voxel R-CNN at 100 % is a training of its own.
+    assert jobs["train_detector_real"] == 2 * 6 * 2
     assert jobs["train_box_labeler"] == 2  # one per platform, shared by its six targets
-    assert jobs["evaluate_detector"] == 2 * 6 * 4 - 2 + 2
+    assert jobs["evaluate_detector"] == 2 * 6 * 4 + 2
+
+
+def test_the_labeler_trains_longer_than_the_runs_by_default():
+    from omnilidar.config import section_defaults
+
+    det = section_defaults("detection")
+    assert det["labeler"]["schedule"]["iterations"] == 4 * det["schedule"]["iterations"]
+    # Every other key of the labeler's schedule is the runs' default.
+    assert {k: v for k, v in det["labeler"]["schedule"].items() if k != "iterations"} == \
+        {k: v for k, v in det["schedule"].items() if k != "iterations"}
 
 
 def test_labeler_stands_in_for_the_full_supervised_run_only_when_identical(workdir):
     target = "results/pi3det_drone_100pct.json"
-    shared = planned_jobs(workdir, target)
+    # Labeler and runs on one schedule: the labeler's checkpoint is the supervised-only run.
+    same = {"schedule": {"iterations": 120}, "labeler": {"schedule": {"iterations": 120}}}
+    base = workdir / "labeler_same.yaml"
+    base.write_text(yaml.safe_dump({"downstream": {"det": same}}))
+    shared = planned_jobs(workdir, target, "--configfile", str(base))
     assert shared["train_detector_real"] == 1 and shared["evaluate_detector"] == 4  # PV-RCNN's; the labeler's
     for i, change in enumerate(({"schedule": {"iterations": 151}}, {"labeler": {"schedule": {"lr": 0.02}}},
                                 {"augmentation": {"flip_x": False}}, {"labeler": {"detector": "pv_rcnn"}})):
         cfg = workdir / f"labeler_change_{i}.yaml"
         cfg.write_text(yaml.safe_dump({"downstream": {"det": change}}))
-        out = snakemake(workdir, "--dry-run", target, "--configfile", str(cfg)).stdout
+        out = snakemake(workdir, "--dry-run", target, "--configfile", str(base), str(cfg)).stdout
         assert "data/detection/drone/voxel_rcnn_100pct_real.pt" in out, change
-    assert "voxel_rcnn_100pct_real.pt" not in snakemake(workdir, "--dry-run", target).stdout
+    assert "voxel_rcnn_100pct_real.pt" not in snakemake(workdir, "--dry-run", target, "--configfile", str(base)).stdout
+    # The defaults differ (480 against 120 iterations): the run trains.
+    assert "voxel_rcnn_100pct_real.pt" in snakemake(workdir, "--dry-run", target).stdout
 
 
 def test_supervised_runs_and_labeler_take_no_generator_input(workdir):

@@ -163,9 +163,38 @@ def student_check(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def pi3det_summary(doc: dict) -> str:
+    """Every Pi3DET target: Car 3D AP R11 (R40) per detector, supervised-only -> GDA, and the box
+    labeler's own val AP with the pseudo-boxes it kept."""
+    rows = doc["targets"]
+    detectors = list(rows[0]["runs"])
+
+    def ap(scores: dict) -> str:
+        car = scores["Car"]
+        return f"{car['3d_R11@0.5']:.2f} ({car['3d_R40@0.5']:.2f})"
+
+    lines = ["| platform | % | real frames | " + " | ".join(f"{d} sup -> GDA" for d in detectors)
+             + " | box labeler | labeler's Car boxes on generated scans |", "|---|---|---|" + "---|" * (len(detectors) + 2)]
+    for r in rows:
+        cells = [f"{ap(run['supervised_only'])}{' (= the labeler)' if run['supervised_only_is_labeler'] else ''} -> "
+                 f"{ap(run['gda'])}" for run in r["runs"].values()]
+        first = next(iter(r["runs"].values()))
+        lab = r["labeler"]
+        lines.append(f"| {r['platform']} | {r['label_percent']} | {first['real_frames']} | " + " | ".join(cells)
+                     + f" | {ap(lab['val_ap'])} | {lab['pseudo_boxes'].get('Car', 0)} on {lab['generated_scans']} |")
+    iterations = sorted({run["iterations"] for r in rows for run in r["runs"].values()})
+    warnings = sorted({f"{r['platform']}: {r['labeler_warning']}" for r in rows if r.get("labeler_warning")})
+    lines += ["", f"Car 3D AP at IoU 0.5, R11 (R40), percent, one seed; runs of {', '.join(map(str, iterations))} "
+                  f"iterations; {first['generated_frames']} generated scans per GDA run."]
+    lines += [f"- Labeler check, {w}." for w in warnings] or ["- Labeler check: the box labeler is above every "
+                                                              "supervised-only detector it labels for, every class."]
+    return "\n".join(lines)
+
+
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
              "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
-             "student_check": student_check, "sampler_quickstart": sampler_points}
+             "student_check": student_check, "sampler_quickstart": sampler_points, "pi3det_summary": pi3det_summary,
+             "run_cost_detection": run_cost}
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:

@@ -124,3 +124,29 @@ def figure_panels(evals: list[dict]) -> list[dict]:
                     "r11": roles[r]["ap"][cls]["3d_R11@0.5"], "r40": roles[r]["ap"][cls]["3d_R40@0.5"]}
                 for r in ROLES if r in roles}})
     return panels
+
+
+def summary_table(results: list[dict], metrics: tuple[str, ...] = ("3d_R11@0.5", "3d_R40@0.5")) -> dict:
+    """The Pi3DET targets as one table: per platform and label fraction, each detector's
+    supervised-only and GDA AP per class, the labeler's val AP, pseudo-boxes and check, and each
+    target's provenance (``results``: pi3det-result documents, ``_path`` naming their files)."""
+    def ap(scores: dict) -> dict:
+        return {c: {m: s[m] for m in metrics} for c, s in scores.items()}
+
+    rows = []
+    for doc in sorted(results, key=lambda d: (d["platform"], d["label_percent"])):
+        runs = {det: {"real_frames": r["supervised_only"]["train_frames"]["real"],
+                      "generated_frames": r["gda"]["train_frames"]["generated"],
+                      "iterations": r["supervised_only"]["iterations"],
+                      "supervised_only_is_labeler": r["supervised_only"]["is_labeler"],
+                      "supervised_only": ap(r["supervised_only"]["ap"]), "gda": ap(r["gda"]["ap"])}
+                for det, r in sorted(doc["runs"].items())}
+        lab = doc["labeler"]
+        rows.append({"platform": doc["platform"], "label_percent": doc["label_percent"], "runs": runs,
+                     "labeler": {"val_ap": ap(lab["val_ap"]), "pseudo_boxes": lab["pseudo_boxes"],
+                                 "generated_scans": lab["generated_scans"]},
+                     "labeler_warning": (doc.get("labeler_check") or {}).get("warning"),
+                     "source": {"file": doc.get("_path"), "config_hash": doc.get("config_hash"),
+                                "code_hash": doc.get("code_hash"), "data_source": doc.get("data_source"),
+                                "seeds": doc.get("seeds"), "created": doc.get("created")}})
+    return {"experiment": "pi3det_summary", "metrics": list(metrics), "targets": rows}
