@@ -109,7 +109,7 @@ def run(args) -> int:
               f"  [{quality}]")
     for name, cross in doc["trend"]["crossings"].items():
         where = (f"measured at {cross['first_measured_budget']} it." if cross["first_measured_budget"] is not None
-                 else f"trend: ~{cross['trend_iterations']} it. ({cross['trend_cpu_minutes']:.0f} CPU-min)"
+                 else f"trend: ~{cross['trend_iterations']:.3g} it. ({cross['trend_cpu_minutes']:.3g} CPU-min)"
                  if cross["trend_cpu_minutes"] else cross.get("note", "not reached"))
         print(f"  reaches {name} ({100 * cross['level_gain']:.2f}): {where}")
     warn_about_labeler(labeler_check)

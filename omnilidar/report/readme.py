@@ -95,7 +95,7 @@ def gda_budget(doc: dict) -> str:
         elif cross.get("trend_cpu_minutes"):
             where = (f"not reached in the measured range; the trend "
                      f"({100 * doc['trend']['fit']['slope_per_decade']:.2f} points per decade of compute) reaches it "
-                     f"near {cross['trend_iterations']} iterations ({cross['trend_cpu_minutes']:.0f} CPU-minutes)")
+                     f"near {cross['trend_iterations']:.3g} iterations ({cross['trend_cpu_minutes']:.3g} CPU-minutes)")
         else:
             where = "not reached; " + cross.get("note", "")
         lines.append(f"- {name.replace('_', ' ')} level ({100 * cross['level_gain']:.2f}): {where}.")
