@@ -301,6 +301,13 @@ def test_attempts_are_scored_against_the_plain_generated_row():
     study = dc.decomposition(evals, {"confident": tried})["minkunet"]
     assert study["attempts"]["confident"]["gain_over_generated"]["per_seed"] == pytest.approx([0.02, 0.01])
     assert study["attempts"]["confident"]["gain_over_supervised"]["mean"] == pytest.approx(0.01)
+    # README's block shows the attempt as a row and its seed-paired gain over the plain generated row.
+    from omnilidar.report.readme import gda_decomposition
+
+    text = gda_decomposition({"backbones": {"minkunet": study}, "setup": {"evalset": "val"},
+                              "attempts": {"confident": {"mixing": {"min_confidence": 0.6}}}})
+    assert "| +N generated, attempt `confident` | 12.00 +- 1.41 |" in text
+    assert "attempt `confident` against the plain generated row: 1.50 +- 0.71 points (seed by seed 2.00, 1.00)" in text
     with pytest.raises(InputError, match="seeds"):
         dc.decomposition(evals, {"confident": tried[:1]})
 

@@ -58,6 +58,10 @@ def gda_decomposition(doc: dict) -> str:
     for row in next(iter(studies.values()))["rows"]:
         cells = [_pm(studies[b]["rows"][row]["miou_mean"], studies[b]["rows"][row]["miou_std"]) for b in names]
         lines.append(f"| {ROW_LABELS[row]} | " + " | ".join(cells) + " |")
+    attempts = [a for a in doc.get("attempts") or {} if all(a in studies[b].get("attempts", {}) for b in names)]
+    for name in attempts:  # remedies tried on the generated row (experiments.gda_decomposition.attempts)
+        cells = [_pm(studies[b]["attempts"][name]["miou_mean"], studies[b]["attempts"][name]["miou_std"]) for b in names]
+        lines.append(f"| +N generated, attempt `{name}` | " + " | ".join(cells) + " |")
     lines += ["", "| link (points lost, seed-paired) | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for link in [k for k in CHAIN if all(k in studies[b]["links"] for b in names)] or ["pseudo_labels", "samples"]:
         cells = [_pm(studies[b]["links"][link]["mean"], studies[b]["links"][link]["std"]) for b in names]
@@ -71,6 +75,10 @@ def gda_decomposition(doc: dict) -> str:
                 f"against 2 std {100 * check['two_std']:.2f} ({clears})" if check.get("set") else "no held-out check")
         lines.append(f"- {b} (seeds {', '.join(str(s) for s in st['seeds'])}): GDA against supervised only "
                      f"{_pm(gen['mean'], gen['std'])} points; costliest link {st['costliest_link']}; {held}.")
+        for name in attempts:
+            diff = st["attempts"][name]["gain_over_generated"]
+            lines.append(f"  - attempt `{name}` against the plain generated row: {_pm(diff['mean'], diff['std'])} points "
+                         f"(seed by seed {_seeds(diff['per_seed'])}).")
     return "\n".join(lines + ["", _labeler_line(doc)])
 
 
