@@ -142,6 +142,7 @@ def test_summary_draws_car_ap_against_the_label_fraction(tmp_path):
     text = pi3det_summary(json.loads(table.read_text()))
     assert "| drone | 100 | 40 | 30.00 (15.00) -> 28.00 (14.00) | 30.00 (15.00) -> 28.00 (14.00) | 31.00 (28.00) | 8 on 16 |" in text
     assert "above every supervised-only detector" in text
+    assert "GDA raises Car R11 in 4 of the 8 comparisons, lowers it in 4, ties in 0." in text
     paths[0].write_text(json.dumps({"ap": {}}))
     table.unlink()
     res = subprocess.run(cmd[:-1] + [str(tmp_path / "bad.png")], capture_output=True, text=True, cwd=ROOT)
