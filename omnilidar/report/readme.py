@@ -190,14 +190,15 @@ def pi3det_summary(doc: dict) -> str:
         lab = r["labeler"]
         lines.append(f"| {r['platform']} | {r['label_percent']} | {first['real_frames']} | " + " | ".join(cells)
                      + f" | {ap(lab['val_ap'])} | {lab['pseudo_boxes'].get('Car', 0)} on {lab['generated_scans']} |")
-    iterations = sorted({run["iterations"] for r in rows for run in r["runs"].values()})
-    signs = [(run["gda"]["Car"]["3d_R11@0.5"] > run["supervised_only"]["Car"]["3d_R11@0.5"])
-             - (run["gda"]["Car"]["3d_R11@0.5"] < run["supervised_only"]["Car"]["3d_R11@0.5"])
-             for r in rows for run in r["runs"].values()]
+    runs = [run for r in rows for run in r["runs"].values()]
+    iterations = sorted({run["iterations"] for run in runs})
+    generated = sorted({run["generated_frames"] for run in runs})
+    gains = [run["gda"]["Car"]["3d_R11@0.5"] - run["supervised_only"]["Car"]["3d_R11@0.5"] for run in runs]
     warnings = sorted({f"{r['platform']}: {r['labeler_warning']}" for r in rows if r.get("labeler_warning")})
     lines += ["", f"Car 3D AP at IoU 0.5, R11 (R40), percent, one seed; runs of {', '.join(map(str, iterations))} "
-                  f"iterations; {first['generated_frames']} generated scans per GDA run. GDA raises Car R11 in "
-                  f"{signs.count(1)} of the {len(signs)} comparisons, lowers it in {signs.count(-1)}, ties in {signs.count(0)}."]
+                  f"iterations; {', '.join(map(str, generated))} generated scans per GDA run. GDA raises Car R11 in "
+                  f"{sum(g > 0 for g in gains)} of the {len(gains)} comparisons, lowers it in {sum(g < 0 for g in gains)}, "
+                  f"ties in {sum(g == 0 for g in gains)}."]
     lines += [f"- Labeler check, {w}." for w in warnings] or ["- Labeler check: the box labeler is above every "
                                                               "supervised-only detector it labels for, every class."]
     return "\n".join(lines)
