@@ -258,23 +258,118 @@ def load_tagged_payload(path: str | Path, fmt: str, what: str) -> dict:
 
 
 def iteration_runner(model, work_dir: Path, loader, iterations: int, optim_wrapper, schedule: dict,
-                     custom_hooks: list, meta: dict, resume_from: Path | None, seed: int):
+                     custom_hooks: list, meta: dict, resume_from: Path | None, seed: int, until: int | None = None):
     """An mmengine Runner of a downstream trainer: counted in iterations, one weights-only checkpoint
-    kept every ``schedule['checkpoint_interval']``, resuming from ``resume_from`` when given."""
+    kept every ``schedule['checkpoint_interval']``, resuming from ``resume_from`` when given (the
+    random streams included, :func:`random_state_hook`). With ``until`` it stops there, leaving its
+    checkpoint for the next segment (the learning-rate schedule still spans ``iterations``)."""
     from mmengine.runner import Runner
 
+    stop = until or iterations
     return Runner(
         model=model,
         work_dir=str(work_dir),
         train_dataloader=loader,
-        train_cfg=dict(by_epoch=False, max_iters=iterations, val_interval=iterations + 1),
+        train_cfg=dict(by_epoch=False, max_iters=stop, val_interval=stop + 1),
         optim_wrapper=optim_wrapper,
         default_hooks=iteration_hooks(schedule["log_interval"], schedule["checkpoint_interval"], keep_checkpoints=1),
-        custom_hooks=[*custom_hooks, *weights_only_hooks(meta)],
+        custom_hooks=[*custom_hooks, random_state_hook(model), *weights_only_hooks(meta)],
         launcher="none",
         env_cfg=dict(cudnn_benchmark=False),
         **resumable_runner_args(resume_from, seed, schedule["log_interval"]),
     )
+
+
+def _generator_slots(net: torch.nn.Module):
+    """(name, holder, key) of every torch.Generator a module keeps as an attribute, or in a dict
+    attribute keyed by device (SeededDropout's, made on first use)."""
+    for prefix, module in net.named_modules():
+        for attr, value in vars(module).items():
+            if isinstance(value, torch.Generator):
+                yield f"{prefix}.{attr}", vars(module), attr
+            elif isinstance(value, dict) and attr.endswith("generators"):
+                for key in value:
+                    yield f"{prefix}.{attr}[{key}]", value, key
+
+
+def random_states(net: torch.nn.Module) -> dict:
+    """The random streams a training step draws from: torch's global CPU generator (nn.Dropout)
+    and every generator the model keeps (sampling, seeded dropout), as tensors."""
+    states = {"torch": torch.get_rng_state()}
+    states |= {name: holder[key].get_state() for name, holder, key in _generator_slots(net)}
+    return states
+
+
+def load_random_states(net: torch.nn.Module, states: dict) -> None:
+    """Put back what :func:`random_states` saved; generators made on first use are made here."""
+    torch.set_rng_state(states["torch"])
+    for prefix, module in net.named_modules():
+        for attr, value in vars(module).items():
+            if isinstance(value, dict) and attr.endswith("generators"):
+                head = f"{prefix}.{attr}["
+                for name in (n for n in states if n.startswith(head)):
+                    key = name[len(head):-1]
+                    value.setdefault(key, torch.Generator(device=key))
+    for name, holder, key in _generator_slots(net):
+        if name in states:
+            holder[key].set_state(states[name])
+
+
+def random_state_hook(model: torch.nn.Module):
+    """mmengine hook keeping the random streams in each checkpoint and putting them back before the
+    first step after a resume, so that a resumed run (a segment chain) draws what an uninterrupted
+    one would: the data loader's iterator, made between loading and that step, draws once more."""
+    from mmengine.hooks import Hook
+
+    class RandomStateHook(Hook):
+        priority = "VERY_LOW"
+
+        def __init__(self):
+            self.pending = None
+
+        def before_save_checkpoint(self, runner, checkpoint: dict) -> None:
+            checkpoint["random_states"] = random_states(model)
+
+        def after_load_checkpoint(self, runner, checkpoint: dict) -> None:
+            self.pending = checkpoint.get("random_states")
+
+        def before_train_iter(self, runner, batch_idx: int, data_batch=None) -> None:
+            if self.pending is not None:
+                load_random_states(model, self.pending)
+                self.pending = None
+
+    return RandomStateHook()
+
+
+def segment_until(segment: tuple[int, int] | None, iterations: int) -> int | None:
+    """The iteration at which segment k of n of a training of ``iterations`` ends (None: the whole
+    training). Segments split the run's own iteration count, which follows the scans the job
+    finds, so the chain's length can be fixed before they are counted."""
+    if segment is None:
+        return None
+    k, n = segment
+    if not 1 <= k < n:
+        raise InputError(None, f"--segment {k}/{n}: a segment is 1..{n - 1} of {n} (the last part is the job itself)")
+    return max(1, iterations * k // n)
+
+
+def parse_segment(text: str) -> tuple[int, int]:
+    """``K/N`` -> (K, N) for ``--segment``."""
+    try:
+        k, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise InputError(None, f"--segment {text!r}: expected K/N, e.g. 1/3") from None
+    return k, n
+
+
+def write_segment_record(out: str | Path, segment: tuple[int, int], until: int, provenance: dict, summary: dict) -> None:
+    """A segment job's output: where it stopped, whose state it left (provenance) and how long it took."""
+    from omnilidar.io.atomic import atomic_path
+
+    record = {"segment": f"{segment[0]}/{segment[1]}", "segment_until": until, "provenance": provenance,
+              **{k: v for k, v in summary.items() if k != "work_dir"}}
+    with atomic_path(out) as tmp:
+        Path(tmp).write_text(json.dumps(record, indent=1, default=str))
 
 
 def trained_state(net: torch.nn.Module) -> dict:

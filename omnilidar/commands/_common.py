@@ -20,6 +20,16 @@ def seed_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="root random seed")
 
 
+def segment_arg(parser: argparse.ArgumentParser) -> None:
+    """``--segment K/N``: train only the K-th of N parts of the run (a segment job of a chain)."""
+    from omnilidar.checkpoints import parse_segment
+
+    parser.add_argument("--segment", type=parse_segment, default=None, metavar="K/N",
+                        help="train only the K-th of N equal parts of the run, leave the resumable state in "
+                             "--work-dir and write a segment record (JSON) to --out; the job without it "
+                             "resumes the last part and writes the weights")
+
+
 def report_outputs_arg(parser: argparse.ArgumentParser, markdown: bool = True) -> None:
     """``--out`` (results JSON), ``--markdown`` (table) and ``--figure`` (PNG) of a results target."""
     parser.add_argument("--out", required=True, help="results JSON")

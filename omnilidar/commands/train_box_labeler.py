@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import seed_arg, segment_arg, settings_arg
 
 HELP = ("the fixed box labeler of a Pi3DET platform: a user's OpenPCDet checkpoint (weights only) or the "
         "labeler detector trained once on 100 %% of the platform's real training frames")
@@ -21,6 +21,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--work-dir", default="work/detection/labeler", help="resumable training state (undeclared)")
     parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
     parser.add_argument("--out", required=True, help="labeler checkpoint (omnilidar detector payload)")
+    segment_arg(parser)
 
 
 def run(args) -> int:
@@ -40,7 +41,8 @@ def run(args) -> int:
     info = {"role": "labeler", "platform": args.platform, "percent": 100.0, "subset_frames": len(real)}
     summary = run_training(det, det["labeler"]["schedule"], detector, args.platform, model_yaml, real, [],
                            args.out, args.work_dir, args.seed, info,
-                           {"index": args.index, "model_config": model_yaml}, "train-box-labeler", with_mixing=False)
+                           {"index": args.index, "model_config": model_yaml}, "train-box-labeler", with_mixing=False,
+                           segment=args.segment)
     print(f"labeler {detector} {args.platform}: {summary['num_real']} real frames, {summary['iterations']} "
           f"iterations, {summary['seconds']} s -> {args.out}")
     return 0

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import seed_arg, segment_arg, settings_arg
 
 HELP = ("train Voxel R-CNN or PV-RCNN from scratch on a label subset of a Pi3DET platform's training frames, "
         "plus pseudo-boxed generated scans for GDA")
@@ -23,6 +23,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--work-dir", default="work/detection", help="resumable training state (undeclared)")
     parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
     parser.add_argument("--out", required=True, help="detector checkpoint (weights-only loadable)")
+    segment_arg(parser)
 
 
 def run(args) -> int:
@@ -47,7 +48,7 @@ def run(args) -> int:
     model_yaml = args.model_config or det["detectors"][args.detector]["config"]
     summary = run_training(det, det["schedule"], args.detector, args.platform, model_yaml, real, generated,
                            args.out, args.work_dir, args.seed, info, inputs | {"model_config": model_yaml},
-                           "train-detector", with_mixing=bool(args.samples))
+                           "train-detector", with_mixing=bool(args.samples), segment=args.segment)
     print(f"{args.detector} {args.platform} {info['role']}: {summary['num_real']} real + {summary['num_generated']} "
           f"generated frames, {summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")
     return 0

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import seed_arg, segment_arg, settings_arg
 
 HELP = "make the fixed pseudo-labeler: import downstream.labeler.checkpoint or train it on the full real train split"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -16,6 +16,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--work-dir", default="work/labeler", help="resumable training state (undeclared)")
     parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
     parser.add_argument("--out", required=True, help="labeler checkpoint (weights-only loadable)")
+    segment_arg(parser)
 
 
 def run(args) -> int:
@@ -38,6 +39,6 @@ def run(args) -> int:
         summary = train_segmentor(training_settings(section), section["backbone"], real, [],
                                   get_label_space(LABEL_SPACE), args.out, args.work_dir, args.seed,
                                   info={"role": "labeler", "train_scans": len(real)},
-                                  inputs={"index": args.index}, command="train-labeler")
+                                  inputs={"index": args.index}, command="train-labeler", segment=args.segment)
         print(f"trained labeler: {summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")
     return 0

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import seed_arg, segment_arg, settings_arg
 
 HELP = "train MinkUNet or SPVCNN from scratch on a real label subset, plus pseudo-labelled generated scans for GDA"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -33,6 +33,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--work-dir", default="work/segmentation", help="resumable training state (undeclared)")
     parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
     parser.add_argument("--out", required=True, help="segmentor checkpoint (weights-only loadable)")
+    segment_arg(parser)
 
 
 def run(args) -> int:
@@ -98,7 +99,7 @@ def run(args) -> int:
     inputs |= {k: v for k, v in (("pool", args.pool), ("pool_labels", args.pool_labels)) if v}
     summary = train_segmentor(training, args.backbone, real, generated, get_label_space(dataset), args.out,
                               args.work_dir, args.seed, info=info, inputs=inputs,
-                              lasermix=args.lasermix)
+                              lasermix=args.lasermix, segment=args.segment)
     print(f"{args.backbone} {info['role']}: {summary['num_real']} real + {summary['num_generated']} "
           f"{'pool' if args.pool else 'generated'} scans, "
           f"{summary['iterations']} iterations, {summary['seconds']} s -> {args.out}")

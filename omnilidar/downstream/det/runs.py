@@ -30,7 +30,7 @@ def platform_records(index_path: str | Path, platform: str, split: str) -> list[
 
 def run_training(det: dict, schedule: dict, detector: str, platform: str, model_yaml: str | None, real: list[dict],
                  generated: list[dict], out, work_dir, seed: int, info: dict, inputs: dict, command: str,
-                 with_mixing: bool) -> dict:
+                 with_mixing: bool, segment: tuple[int, int] | None = None) -> dict:
     """Train ``detector`` on one platform's frames with the section's data keys and ``schedule``."""
     from omnilidar.downstream.det.data_config import platform_config
     from omnilidar.downstream.det.model_config import model_config
@@ -43,7 +43,7 @@ def run_training(det: dict, schedule: dict, detector: str, platform: str, model_
     if with_mixing:
         training["mixing"] = det["mixing"]
     return train_detector(training, detector, model, cfg, real, generated, out, work_dir, seed, info=info,
-                          inputs=inputs, command=command)
+                          inputs=inputs, command=command, segment=segment)
 
 
 def load_detector(path: str | Path, device):

@@ -24,7 +24,8 @@ import numpy as np
 import torch
 
 from omnilidar.checkpoints import (checkpoint_iteration, iteration_runner, job_provenance, relative_marker,
-                                   resume_point, trained_state, trajectory_settings)
+                                   resume_point, segment_until, trained_state, trajectory_settings,
+                                   write_segment_record)
 from omnilidar.devices import resolve_device
 from omnilidar.downstream.det.checkpoints import save_payload
 from omnilidar.downstream.det.data_config import PlatformConfig
@@ -84,11 +85,13 @@ def schedule_hook(optimizer_schedule):
 def train_detector(settings: dict, detector: str, model_cfg: dict, cfg: PlatformConfig, real: list[dict],
                    generated: list[dict], out: str | Path, work_dir: str | Path, seed: int = 0,
                    info: dict | None = None, inputs: dict | None = None,
-                   command: str = "train-detector") -> dict:
+                   command: str = "train-detector", segment: tuple[int, int] | None = None) -> dict:
     """Train one detector from scratch and write its weights-only payload to ``out``.
 
     ``settings``: ``device``, ``voxels``, ``schedule``, ``augmentation``, ``mixing``.
-    ``real`` / ``generated``: frame records (:mod:`.dataset`). Returns a summary dict.
+    ``real`` / ``generated``: frame records (:mod:`.dataset`). With ``segment`` (k, n) only the
+    k-th of n parts of the run (see :func:`omnilidar.downstream.seg.training.train_segmentor`).
+    Returns a summary dict.
     """
     from mmengine.optim import OptimWrapper
 
@@ -101,6 +104,7 @@ def train_detector(settings: dict, detector: str, model_cfg: dict, cfg: Platform
     mixing = settings.get("mixing", {"mode": "concat", "generated_share": 0.5})
     device = resolve_device(settings["device"], "downstream.det.device")
     iterations = total_iterations(sched, len(real), len(generated), mixing)
+    until = segment_until(segment, iterations)
 
     run_dir = Path(work_dir)
     provenance = job_provenance(command, trajectory(settings, detector, model_cfg, real, generated), seed,
@@ -123,21 +127,26 @@ def train_detector(settings: dict, detector: str, model_cfg: dict, cfg: Platform
     optim_wrapper = OptimWrapper(optimizer=optimizer, clip_grad=dict(max_norm=float(sched["grad_norm_clip"])))
     meta = {"detector": detector, "seed": int(seed), "provenance": provenance}
     runner = iteration_runner(model, run_dir, loader, iterations, optim_wrapper, sched, [schedule_hook(step_schedule)], meta,
-                              resume_from, seed)
+                              resume_from, seed, until=until)
     params = sum(p.numel() for p in net.parameters())
     runner.logger.info(
         f"omnilidar detector: {detector} ({params / 1e6:.2f} M parameters, {device}), platform {cfg.name} "
         f"classes {', '.join(cfg.class_names)}, {len(real)} real + {len(generated)} generated frames "
         f"(mixing {mixing['mode']}), {iterations} iterations of batch {sched['batch_size']}"
+        + (f" (this segment {segment[0]}/{segment[1]} up to {until})" if segment else "")
         + (f", resuming at iteration {skip}" if resume_from else ", from scratch")
     )
-    runner.train()
+    runner.train()  # loads the resumed state even when there is no step left to take
     relative_marker(run_dir)
 
-    state = trained_state(net)
     summary = {"iterations": int(runner.iter), "parameters": int(params), "num_real": len(real),
                "num_generated": len(generated), "mixing": mixing, "device": str(device),
                "seconds": round(time.time() - started, 1), "resumed_from": skip}
+    if segment:
+        write_segment_record(out, segment, until, provenance, summary)
+        runner.logger.info(f"segment {segment[0]}/{segment[1]} up to iteration {until} done; state in {run_dir}")
+        return summary
+    state = trained_state(net)
     save_payload({"model_state": state, "detector": detector, "model_cfg": model_cfg, "data": cfg.as_dict(),
                   "config": settings, "seed": int(seed), "iterations": summary["iterations"],
                   "provenance": provenance, "train": summary | {"info": info or {}}}, out)

@@ -35,7 +35,8 @@ import numpy as np
 import torch
 
 from omnilidar.checkpoints import (checkpoint_iteration, iteration_runner, job_provenance, relative_marker,
-                                   resume_point, trained_state, trajectory_settings)
+                                   resume_point, segment_until, trained_state, trajectory_settings,
+                                   write_segment_record)
 from omnilidar.devices import resolve_device
 from omnilidar.downstream.seg.checkpoints import save_payload
 from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, total_iterations
@@ -127,6 +128,7 @@ def train_segmentor(
     inputs: dict | None = None,
     command: str = "train-segmentor",
     lasermix: bool = False,
+    segment: tuple[int, int] | None = None,
 ) -> dict:
     """Train one segmentor from scratch and write its weights-only payload to ``out``.
 
@@ -136,7 +138,9 @@ def train_segmentor(
     the payload (e.g. which subset and domains). ``inputs`` (``{name: path or
     [paths]}``) are the files the records come from; their content digests and the
     code hash of ``command`` key the resumable state in ``work_dir``. With ``lasermix`` every
-    draw of a ``generated`` record is LaserMix-ed with a real one (:mod:`.lasermix`).
+    draw of a ``generated`` record is LaserMix-ed with a real one (:mod:`.lasermix`). With
+    ``segment`` (k, n) it trains only the k-th of n parts of the run, leaves its state in
+    ``work_dir`` for the next part and writes a segment record to ``out`` instead of weights.
     Returns a summary dict.
     """
 
@@ -148,6 +152,7 @@ def train_segmentor(
     device = resolve_device(settings["device"], "downstream device")
     spec = model_spec(backbone, settings["models"][backbone], space.num_classes)
     iterations = total_iterations(sched, len(real), len(generated), mixing)
+    until = segment_until(segment, iterations)
 
     run_dir = Path(work_dir)
     provenance = job_provenance(command, trajectory(settings, backbone, real, generated, lasermix), seed, inputs or {})
@@ -175,22 +180,27 @@ def train_segmentor(
         optim_wrapper = dict(type="AmpOptimWrapper", dtype="float16", optimizer=optimizer)
     meta = {"model": spec, "label_space": space.name, "seed": int(seed), "provenance": provenance}
     runner = iteration_runner(model, run_dir, loader, iterations, optim_wrapper, sched, [schedule_hook(iterations, sched)], meta,
-                              resume_from, seed)
+                              resume_from, seed, until=until)
     params = sum(p.numel() for p in net.parameters())
     runner.logger.info(
         f"omnilidar segmentor: {backbone} {spec['width']} depth {spec['depth']} ({params / 1e6:.2f} M parameters, "
         f"backend {net.backend}, {device}), {len(real)} real + {len(generated)} generated scans "
         f"(mixing {mixing['mode']}{', LaserMix' if lasermix else ''}), {iterations} iterations of batch {sched['batch_size']}"
+        + (f" (this segment {segment[0]}/{segment[1]} up to {until})" if segment else "")
         + (f", resuming at iteration {skip}" if resume_from else ", from scratch")
     )
-    runner.train()
+    runner.train()  # loads the resumed state even when there is no step left to take
     relative_marker(run_dir)
 
-    state = trained_state(net)
     summary = {"iterations": int(runner.iter), "parameters": int(params), "num_real": len(real),
                "num_generated": len(generated), "mixing": mixing, "lasermix": bool(lasermix), "backend": net.backend,
                "device": str(device), "seconds": round(time.time() - started, 1), "work_dir": str(run_dir),
                "resumed_from": skip}
+    if segment:
+        write_segment_record(out, segment, until, provenance, summary)
+        runner.logger.info(f"segment {segment[0]}/{segment[1]} up to iteration {until} done; state in {run_dir}")
+        return summary
+    state = trained_state(net)
     save_payload({
         "state_dict": state, "model": spec, "label_space": space.name,
         "voxel_size": float(settings["voxel_size"]), "config": settings, "seed": int(seed),
