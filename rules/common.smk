@@ -47,9 +47,11 @@ def settings(*keys, drop=()):
 
 
 def job_work_dir(output):
-    """A job's own folder for resumable state, named after its output (work/<output without suffix>).
+    """A job's own folder for resumable state, named after its output (work/<output without suffix>);
+    a segment job's (<folder>/segments/<name>.<k>of<n>.json) is its training's, work/<folder>/<name>.
     What is in it is resumed only when its recorded provenance matches the job (see README)."""
-    return f"work/{os.path.splitext(output)[0]}"
+    segment = re.fullmatch(r"(.+)/segments/(.+)\.[0-9]+of[0-9]+\.json", output)
+    return f"work/{segment[1]}/{segment[2]}" if segment else f"work/{os.path.splitext(output)[0]}"
 
 
 # Package versions (torch, numpy, spconv, mamba, text encoder, ...): recorded in every result

@@ -13,6 +13,11 @@
 # DET, PSEUDO_BOXES, DET_SECTION, PI3DET_EXP and the detection helpers are in rules/common.smk.
 
 
+BOX_LABELER = f"{DET}/{{platform}}/labeler.pt"
+DETECTOR_REAL_RUN = f"{DET}/{{platform}}/{{detector}}_{{pct}}pct_real.pt"
+DETECTOR_GDA_RUN = f"{DET}/{{platform}}/{{detector}}_{{pct}}pct_gda.pt"
+
+
 rule train_box_labeler:
     """The fixed box labeler of one platform: the configured OpenPCDet checkpoint, or the
     labeler detector trained once on 100 % of the platform's real training frames."""
@@ -20,8 +25,9 @@ rule train_box_labeler:
         index=lambda w: [] if labeler_checkpoint(w.platform) else f"{DATA}/index/pi3det.json",
         checkpoint=lambda w: labeler_checkpoint(w.platform) or [],
         model=lambda w: detector_yaml(DET_SECTION["labeler"]["detector"]),
+        previous=previous_segment("train_box_labeler", BOX_LABELER),
     output:
-        f"{DET}/{{platform}}/labeler.pt",
+        BOX_LABELER,
     wildcard_constraints:
         platform=PI3DET_PLATFORMS,
     params:
@@ -29,6 +35,7 @@ rule train_box_labeler:
         source=lambda w, input: f"--checkpoint {input.checkpoint}" if input.checkpoint else f"--index {input.index}",
         seed=config["seed"],
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         code=code("train-box-labeler"),
     log:
         f"logs/detection/labeler_{{platform}}.log",
@@ -43,7 +50,17 @@ rule train_box_labeler:
     shell:
         "omnilidar train-box-labeler --platform {wildcards.platform} {params.source} --model-config {input.model} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} --threads {threads} "
-        "--out {output} > {log} 2>&1"
+        "--out {output} {params.segment} > {log} 2>&1"
+
+
+# A training longer than its partition's time limit: the segment jobs of its chain (resources.smk).
+use rule train_box_labeler as train_box_labeler_segment with:
+    output:
+        segment_output(BOX_LABELER),
+    log:
+        f"logs/detection/labeler_{{platform}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/detection/labeler_{{platform}}.part{{part}}of{{parts}}.tsv"
 
 
 rule pseudo_box:
@@ -79,8 +96,9 @@ rule train_detector_real:
     input:
         index=f"{DATA}/index/pi3det.json",
         model=lambda w: detector_yaml(w.detector),
+        previous=previous_segment("train_detector_real", DETECTOR_REAL_RUN),
     output:
-        f"{DET}/{{platform}}/{{detector}}_{{pct}}pct_real.pt",
+        DETECTOR_REAL_RUN,
     wildcard_constraints:
         platform=PI3DET_PLATFORMS,
         detector=DETECTOR_NAMES,
@@ -89,6 +107,7 @@ rule train_detector_real:
         settings=lambda w: det_settings("schedule", "augmentation", detector=w.detector),
         seed=config["seed"],
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         code=code("train-detector"),
     log:
         f"logs/detection/train/{{platform}}_{{detector}}_{{pct}}pct_real.log",
@@ -98,12 +117,22 @@ rule train_detector_real:
         ENV
     threads: 1
     resources:
-        **job_resources("train_detector"),
+        **job_resources("train_detector_real"),
     shell:
         "omnilidar train-detector --detector {wildcards.detector} --platform {wildcards.platform} "
         "--index {input.index} --percent {wildcards.pct} --model-config {input.model} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} --threads {threads} "
-        "--out {output} > {log} 2>&1"
+        "--out {output} {params.segment} > {log} 2>&1"
+
+
+# A training longer than its partition's time limit: the segment jobs of its chain (resources.smk).
+use rule train_detector_real as train_detector_real_segment with:
+    output:
+        segment_output(DETECTOR_REAL_RUN),
+    log:
+        f"logs/detection/train/{{platform}}_{{detector}}_{{pct}}pct_real.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/detection/train/{{platform}}_{{detector}}_{{pct}}pct_real.part{{part}}of{{parts}}.tsv"
 
 
 rule train_detector_gda:
@@ -114,8 +143,9 @@ rule train_detector_gda:
         model=lambda w: detector_yaml(w.detector),
         samples=lambda w: domain_sample_shards(w.platform),
         pseudo=lambda w: pseudo_box_shards(w.platform),
+        previous=previous_segment("train_detector_gda", DETECTOR_GDA_RUN),
     output:
-        f"{DET}/{{platform}}/{{detector}}_{{pct}}pct_gda.pt",
+        DETECTOR_GDA_RUN,
     wildcard_constraints:
         platform=PI3DET_PLATFORMS,
         detector=DETECTOR_NAMES,
@@ -124,6 +154,7 @@ rule train_detector_gda:
         settings=lambda w: det_settings("schedule", "augmentation", "mixing", detector=w.detector),
         seed=config["seed"],
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         code=code("train-detector"),
     log:
         f"logs/detection/train/{{platform}}_{{detector}}_{{pct}}pct_gda.log",
@@ -133,13 +164,23 @@ rule train_detector_gda:
         ENV
     threads: 1
     resources:
-        **job_resources("train_detector"),
+        **job_resources("train_detector_gda"),
     shell:
         "omnilidar train-detector --detector {wildcards.detector} --platform {wildcards.platform} "
         "--index {input.index} --percent {wildcards.pct} --model-config {input.model} "
         "--samples {input.samples} --pseudo-boxes {input.pseudo} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} --threads {threads} "
-        "--out {output} > {log} 2>&1"
+        "--out {output} {params.segment} > {log} 2>&1"
+
+
+# A training longer than its partition's time limit: the segment jobs of its chain (resources.smk).
+use rule train_detector_gda as train_detector_gda_segment with:
+    output:
+        segment_output(DETECTOR_GDA_RUN),
+    log:
+        f"logs/detection/train/{{platform}}_{{detector}}_{{pct}}pct_gda.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/detection/train/{{platform}}_{{detector}}_{{pct}}pct_gda.part{{part}}of{{parts}}.tsv"
 
 
 rule evaluate_detector:

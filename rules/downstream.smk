@@ -53,12 +53,14 @@ rule train_labeler:
     input:
         index=[] if DOWNSTREAM["labeler"]["checkpoint"] else f"{DATA}/index/semantickitti.json",
         checkpoint=DOWNSTREAM["labeler"]["checkpoint"] or [],
+        previous=previous_segment("train_labeler", LABELER),
     output:
         LABELER,
     params:
         settings=settings("downstream", "labeler"),
         seed=config["seed"],
         work_dir="work/labeler",
+        segment=segment_flag,
         code=code("train-labeler"),
     log:
         "logs/downstream/labeler.log",
@@ -72,7 +74,17 @@ rule train_labeler:
         **job_resources("train_labeler"),
     shell:
         "omnilidar train-labeler --index {input.index} --settings {params.settings:q} --seed {params.seed} "
-        "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
+        "--work-dir {params.work_dir} --threads {threads} --out {output} {params.segment} > {log} 2>&1"
+
+
+# A training longer than its partition's time limit: the segment jobs of its chain (resources.smk).
+use rule train_labeler as train_labeler_segment with:
+    output:
+        segment_output(LABELER),
+    log:
+        "logs/downstream/labeler.part{part}of{parts}.log",
+    benchmark:
+        "benchmarks/out/downstream/labeler.part{part}of{parts}.tsv"
 
 
 rule evaluate_labeler:
@@ -127,12 +139,20 @@ rule pseudo_label:
         "--settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
 
 
+SUPERVISED_RUN = f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_real.pt"
+GDA_RUN = f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda-{{domains}}.pt"
+CURVE_RUN = f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.pt"
+POOL_RUN = f"{SEG}/semantickitti/{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}.pt"
+STUDY_RUN = f"{SEG}/semantickitti/{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.pt"
+
+
 rule train_supervised:
     """Supervised-only run: the real label subset alone, from scratch."""
     input:
         subset=f"{SUBSETS}/{{dataset}}_{{pct}}pct.json",
+        previous=previous_segment("train_supervised", SUPERVISED_RUN),
     output:
-        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_real.pt",
+        SUPERVISED_RUN,
     wildcard_constraints:
         dataset=r"semantickitti|nuscenes",
         backbone=r"minkunet|spvcnn",
@@ -141,6 +161,7 @@ rule train_supervised:
         settings=downstream_settings(*TRAINING_KEYS),
         seed=config["seed"],
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         code=code("train-segmentor"),
     log:
         f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real.log",
@@ -155,7 +176,16 @@ rule train_supervised:
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
-        "--threads {threads} --out {output} > {log} 2>&1"
+        "--threads {threads} --out {output} {params.segment} > {log} 2>&1"
+
+
+use rule train_supervised as train_supervised_segment with:
+    output:
+        segment_output(SUPERVISED_RUN),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real.part{{part}}of{{parts}}.tsv"
 
 
 rule train_gda:
@@ -165,8 +195,9 @@ rule train_gda:
         subset=f"{SUBSETS}/{{dataset}}_{{pct}}pct.json",
         samples=lambda w: [d for name in gda_domains(w) for d in domain_sample_shards(name)],
         pseudo=lambda w: generated_pseudo_labels(gda_domains(w)),
+        previous=previous_segment("train_gda", GDA_RUN),
     output:
-        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda-{{domains}}.pt",
+        GDA_RUN,
     wildcard_constraints:
         dataset=r"semantickitti|nuscenes",
         backbone=r"minkunet|spvcnn",
@@ -176,6 +207,7 @@ rule train_gda:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=config["seed"],
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         domains=lambda w: " ".join(gda_domains(w)),
         code=code("train-segmentor"),
     log:
@@ -192,7 +224,16 @@ rule train_gda:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
         "--threads {threads} --out {output} --samples {input.samples} --pseudo-labels {input.pseudo} "
-        "--domains {params.domains} > {log} 2>&1"
+        "--domains {params.domains} {params.segment} > {log} 2>&1"
+
+
+use rule train_gda as train_gda_segment with:
+    output:
+        segment_output(GDA_RUN),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}.part{{part}}of{{parts}}.tsv"
 
 
 # Extra seeds of a run (downstream.experiments.<name>.seeds): the same job with seed
@@ -209,11 +250,21 @@ use rule train_supervised as train_supervised_seed with:
         settings=downstream_settings(*TRAINING_KEYS),
         seed=lambda w: int(w.seed),
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         code=code("train-segmentor"),
     log:
         f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real_seed{{seed}}.log",
     benchmark:
         f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real_seed{{seed}}.tsv"
+
+
+use rule train_supervised_seed as train_supervised_seed_segment with:
+    output:
+        segment_output(f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_real_seed{{seed}}.pt"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real_seed{{seed}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_real_seed{{seed}}.part{{part}}of{{parts}}.tsv"
 
 
 use rule train_gda as train_gda_seed with:
@@ -229,6 +280,7 @@ use rule train_gda as train_gda_seed with:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=lambda w: int(w.seed),
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         domains=lambda w: " ".join(gda_domains(w)),
         code=code("train-segmentor"),
     log:
@@ -237,7 +289,17 @@ use rule train_gda as train_gda_seed with:
         f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}_seed{{seed}}.tsv"
 
 
+use rule train_gda_seed as train_gda_seed_segment with:
+    output:
+        segment_output(f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda-{{domains}}_seed{{seed}}.pt"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}_seed{{seed}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda-{{domains}}_seed{{seed}}.part{{part}}of{{parts}}.tsv"
+
+
 ruleorder: train_gda_seed > train_gda
+ruleorder: train_gda_seed_segment > train_gda_segment
 
 
 rule train_gda_curve:
@@ -248,8 +310,9 @@ rule train_gda_curve:
         subset=f"{SUBSETS}/{{dataset}}_{{pct}}pct.json",
         samples=lambda w: domain_sample_shards(w.domain, w.scans),
         pseudo=lambda w: pseudo_label_shards(w.domain, w.scans),
+        previous=previous_segment("train_gda_curve", CURVE_RUN),
     output:
-        f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.pt",
+        CURVE_RUN,
     wildcard_constraints:
         dataset=r"semantickitti|nuscenes",
         backbone=r"minkunet|spvcnn",
@@ -260,6 +323,7 @@ rule train_gda_curve:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=config["seed"],
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         code=code("train-segmentor"),
     log:
         f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.log",
@@ -275,7 +339,16 @@ rule train_gda_curve:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
         "--threads {threads} --out {output} --samples {input.samples} --pseudo-labels {input.pseudo} "
-        "--domains {wildcards.domain} --max-generated {wildcards.scans} > {log} 2>&1"
+        "--domains {wildcards.domain} --max-generated {wildcards.scans} {params.segment} > {log} 2>&1"
+
+
+use rule train_gda_curve as train_gda_curve_segment with:
+    output:
+        segment_output(CURVE_RUN),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}.part{{part}}of{{parts}}.tsv"
 
 
 use rule train_gda_curve as train_gda_curve_seed with:
@@ -292,6 +365,7 @@ use rule train_gda_curve as train_gda_curve_seed with:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=lambda w: int(w.seed),
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         code=code("train-segmentor"),
     log:
         f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.log",
@@ -299,13 +373,23 @@ use rule train_gda_curve as train_gda_curve_seed with:
         f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.tsv"
 
 
+use rule train_gda_curve_seed as train_gda_curve_seed_segment with:
+    output:
+        segment_output(f"{SEG}/{{dataset}}/{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.pt"),
+    log:
+        f"logs/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/{{dataset}}_{{backbone}}_{{pct}}pct_gda{{scans}}-{{domain}}_seed{{seed}}.part{{part}}of{{parts}}.tsv"
+
+
 rule train_curve_pool:
     """A point of the GDA curve's real series: the real label subset plus the first N scans of the
     real pool (P scans outside the subset) with their true labels (truth) or the labeler's (pseudo)."""
     input:
         unpack(curve_pool_inputs),
+        previous=previous_segment("train_curve_pool", POOL_RUN),
     output:
-        f"{SEG}/semantickitti/{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}.pt",
+        POOL_RUN,
     wildcard_constraints:
         backbone=r"minkunet|spvcnn",
         pct=r"\d+",
@@ -316,6 +400,7 @@ rule train_curve_pool:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=config["seed"],
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         labels=lambda w, input: f"--pool-labels {input.labels}" if w.row == "pseudo" else "",
         code=code("train-segmentor"),
     log:
@@ -327,12 +412,21 @@ rule train_curve_pool:
     priority: training_priority
     threads: 1
     resources:
-        **job_resources("train_gda_curve"),
+        **job_resources("train_curve_pool"),
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
         "--threads {threads} --out {output} --pool {input.pool} {params.labels} --max-pool {wildcards.scans} "
-        "> {log} 2>&1"
+        "{params.segment} > {log} 2>&1"
+
+
+use rule train_curve_pool as train_curve_pool_segment with:
+    output:
+        segment_output(POOL_RUN),
+    log:
+        f"logs/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}.part{{part}}of{{parts}}.tsv"
 
 
 use rule train_curve_pool as train_curve_pool_seed with:
@@ -349,6 +443,7 @@ use rule train_curve_pool as train_curve_pool_seed with:
         settings=downstream_settings(*TRAINING_KEYS, "mixing"),
         seed=lambda w: int(w.seed),
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         labels=lambda w, input: f"--pool-labels {input.labels}" if w.row == "pseudo" else "",
         code=code("train-segmentor"),
     log:
@@ -357,7 +452,17 @@ use rule train_curve_pool as train_curve_pool_seed with:
         f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}_seed{{seed}}.tsv"
 
 
+use rule train_curve_pool_seed as train_curve_pool_seed_segment with:
+    output:
+        segment_output(f"{SEG}/semantickitti/{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}_seed{{seed}}.pt"),
+    log:
+        f"logs/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}_seed{{seed}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_pool{{pool}}-{{row}}{{scans}}_seed{{seed}}.part{{part}}of{{parts}}.tsv"
+
+
 ruleorder: train_curve_pool_seed > train_curve_pool
+ruleorder: train_curve_pool_seed_segment > train_curve_pool_segment
 
 
 rule evaluate_segmentor:
@@ -634,8 +739,9 @@ rule train_study:
     or the first N generated scans of the domain (gda)."""
     input:
         unpack(study_run_inputs),
+        previous=previous_segment("train_study", STUDY_RUN),
     output:
-        f"{SEG}/semantickitti/{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.pt",
+        STUDY_RUN,
     wildcard_constraints:
         backbone=r"minkunet|spvcnn",
         pct=r"\d+",
@@ -646,6 +752,7 @@ rule train_study:
         settings=lambda w: study_settings(w.row),
         seed=lambda w: int(w.seed),
         work_dir=lambda w, output: job_work_dir(output[0]),
+        segment=segment_flag,
         flags=study_flags,
         code=code("train-segmentor"),
     log:
@@ -657,11 +764,20 @@ rule train_study:
     priority: training_priority
     threads: 1
     resources:
-        **job_resources("train_gda"),
+        **job_resources("train_study"),
     shell:
         "omnilidar train-segmentor --backbone {wildcards.backbone} --subset {input.subset} "
         "--settings {params.settings:q} --seed {params.seed} --work-dir {params.work_dir} "
-        "--threads {threads} --out {output} {params.flags} > {log} 2>&1"
+        "--threads {threads} --out {output} {params.flags} {params.segment} > {log} 2>&1"
+
+
+use rule train_study as train_study_segment with:
+    output:
+        segment_output(STUDY_RUN),
+    log:
+        f"logs/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.part{{part}}of{{parts}}.log",
+    benchmark:
+        f"benchmarks/out/downstream/train/semantickitti_{{backbone}}_{{pct}}pct_study-{{row}}{{scans}}_seed{{seed}}.part{{part}}of{{parts}}.tsv"
 
 
 rule gda_decomposition:

@@ -6,6 +6,7 @@
 # (data-loader workers + 1). Every job's request is checked against its partition's limits
 # (resources.partition_config, the SLURM executor plugin's own partition file format) when the
 # DAG is built, dry runs included. Rules use `resources: **job_resources("name")`.
+import functools
 import json
 import math
 import os
@@ -131,49 +132,97 @@ _EVAL = config["evaluation"]
 _DOWN_H = RESOURCES["rates"]["downstream_hours"] * 60
 
 
-def _json_scans(path, split):
-    """Scans of a subset JSON (its entries) or of one split of a dataset index; None while the
-    file is not there yet (a dry run before the data is indexed)."""
+@functools.cache
+def split_scans(dataset, split):
+    """Scans of one split of a dataset, counted alike before and after the dataset is indexed (so a
+    training's segment chain, which depends on it, stays the same): from its index when that exists
+    for the configured root, else by listing a real root; None when neither is there (a synthetic world not made yet, a
+    missing root)."""
+    root = dataset_root(dataset)
     try:
-        with open(path) as fh:
-            doc = json.load(fh)
+        with open(f"{DATA}/index/{dataset}.json") as fh:
+            index = json.load(fh)
+        if index.get("root") == str(root):  # not an index of another root, about to be remade
+            return len(index.get("splits", {}).get(split, []))
     except (OSError, ValueError):
+        pass
+    if is_synthetic(dataset) or not os.path.isdir(root):
         return None
-    if "entries" in doc:
-        return len(doc["entries"])
-    return len(doc.get("splits", {}).get(split, []))
+    from omnilidar.data.index import build_index
+
+    try:
+        return len(build_index(dataset, root)["splits"].get(split, []))
+    except InputError:
+        return None
 
 
-def _generated_scans(dirs):
-    return sum(len(os.listdir(os.path.join(d, "velodyne"))) for d in dirs if os.path.isdir(os.path.join(d, "velodyne")))
+def subset_scans(dataset, split, percent):
+    """Scans of a label subset (one out of every 100/percent of the split, as make-subset picks them)."""
+    from omnilidar.data.subsets import select_every_k
+
+    total = split_scans(dataset, split)
+    return None if total is None else len(select_every_k(range(total), float(percent) / 100))
 
 
-def _training_runtime(schedule, device, kind, split=lambda w: "train", fraction=lambda w: 1.0):
-    """Minutes of a downstream training from its schedule: steps (schedule.iterations, or epochs
-    over the training scans) x batch x seconds per scan and step on the job's device
-    (resources.rates.<kind>_scan_step_s on a GPU, <kind>_scan_step_cpu_s on a CPU). The scans are
-    counted in the job's subset or index (``fraction`` of ``split``) plus its generated scans
-    when those files exist; before they do (a dry run on a fresh clone),
-    rates.downstream_hours stands in for an epoch-based schedule."""
+_SCANS_PER_DOMAIN = config["generator"]["sampling"]["scans_per_domain"]
+
+
+def _study_schedule(w):
+    return json.loads(study_settings(w.row))["schedule"]
+
+
+# What each downstream training trains on, from its wildcards: (schedule, device, rates key, mixing
+# or None, real scans or None when they cannot be counted yet, generated scans).
+_TRAININGS = {
+    "train_labeler": lambda w: (_LABELER["schedule"], _LABELER["device"], "segmentor", None,
+                                split_scans("semantickitti", "train"), 0),
+    "train_supervised": lambda w: (_DOWN["schedule"], _DOWN["device"], "segmentor", None,
+                                   subset_scans(w.dataset, "train", w.pct), 0),
+    "train_gda": lambda w: (_DOWN["schedule"], _DOWN["device"], "segmentor", _DOWN["mixing"],
+                            subset_scans(w.dataset, "train", w.pct), len(gda_domains(w)) * _SCANS_PER_DOMAIN),
+    "train_gda_curve": lambda w: (_DOWN["schedule"], _DOWN["device"], "segmentor", _DOWN["mixing"],
+                                  subset_scans(w.dataset, "train", w.pct), int(w.scans)),
+    "train_curve_pool": lambda w: (_DOWN["schedule"], _DOWN["device"], "segmentor", _DOWN["mixing"],
+                                   subset_scans("semantickitti", "train", w.pct), int(w.scans)),
+    "train_study": lambda w: (_study_schedule(w), _DOWN["device"], "segmentor", _DOWN["mixing"],
+                              subset_scans("semantickitti", "train", w.pct), 0 if w.row == "real" else int(w.scans)),
+    "train_box_labeler": lambda w: (_DET["labeler"]["schedule"], _DET["device"], "detector", None,
+                                    split_scans("pi3det", f"{w.platform}_train"), 0),
+    "train_detector_real": lambda w: (_DET["schedule"], _DET["device"], "detector", None,
+                                      subset_scans("pi3det", f"{w.platform}_train", w.pct), 0),
+    "train_detector_gda": lambda w: (_DET["schedule"], _DET["device"], "detector", _DET["mixing"],
+                                     subset_scans("pi3det", f"{w.platform}_train", w.pct), _SCANS_PER_DOMAIN),
+}
+_TRAININGS |= {f"{rule}_seed": _TRAININGS[rule] for rule in ("train_supervised", "train_gda", "train_gda_curve",
+                                                              "train_curve_pool")}
+
+
+def training_seconds(rule, wildcards):
+    """Estimated seconds of one downstream training: steps (schedule.iterations, or epochs over the
+    mixed training scans) x batch x seconds per scan and step on the job's device
+    (resources.rates.<kind>_scan_step_s on a GPU, <kind>_scan_step_cpu_s on a CPU); None for an
+    epoch schedule whose scans cannot be counted yet."""
+    from omnilidar.downstream.schedule import total_iterations
+
+    schedule, device, kind, mixing, real, generated = _TRAININGS[rule](wildcards)
+    if not schedule["iterations"] and real is None:
+        return None
+    steps = total_iterations(schedule, real or 0, generated, mixing or {"mode": "concat"})
+    on_gpu = cluster_gpus() and uses_cuda(device)
+    return steps * schedule["batch_size"] * RESOURCES["rates"][f"{kind}_scan_step_s" if on_gpu else f"{kind}_scan_step_cpu_s"]
+
+
+def _training_runtime(rule):
+    """Minutes each job of a downstream training asks: its share of the estimate where the training
+    runs as a chain of segment jobs (training_parts); rates.downstream_hours for an epoch schedule
+    whose scans cannot be counted yet (a dry run before a synthetic world is made)."""
     def runtime(wildcards, input):
-        steps = schedule["iterations"]
-        if steps is None:
-            source = getattr(input, "subset", None) or getattr(input, "index", None)
-            scans = _json_scans(source, split(wildcards)) if source else None
-            if scans is None:
-                return int(_DOWN_H)
-            samples = getattr(input, "samples", [])
-            samples = [samples] if isinstance(samples, str) else samples
-            scans = math.ceil(scans * fraction(wildcards)) + _generated_scans(samples)
-            steps = schedule["epochs"] * math.ceil(scans / schedule["batch_size"])
-        on_gpu = cluster_gpus() and uses_cuda(device)
-        rate = RESOURCES["rates"][f"{kind}_scan_step_s" if on_gpu else f"{kind}_scan_step_cpu_s"]
-        return _runtime(steps * schedule["batch_size"] * rate)
+        seconds = training_seconds(rule, wildcards)
+        return int(_DOWN_H) if seconds is None else _runtime(seconds / training_parts(rule, wildcards))
 
     return runtime
 
 
-_STUDENT_RUNTIME = _training_runtime(_DOWN["schedule"], _DOWN["device"], "segmentor")
 # rule: (device setting that decides the GPU request: a value, True = always, False = never;
 #        mem_mb, runtime in minutes (a number or a function of the wildcards and input), cpus_per_task)
 _RULES = {
@@ -224,27 +273,21 @@ _RULES = {
     "simulate_pool": (False, 3000, 60, 1),
     # Importing a user's checkpoint is a small CPU job; training the labeler is the long GPU one.
     "train_labeler": ((False, 4000, 15, 1) if config["downstream"]["labeler"]["checkpoint"] else
-                      (_LABELER["device"], _LABELER_WORK,
-                       _training_runtime(_LABELER["schedule"], _LABELER["device"], "segmentor"),
+                      (_LABELER["device"], _LABELER_WORK, _training_runtime("train_labeler"),
                        _downstream_workers("labeler", "schedule"))),
     "pseudo_label": (_LABELER["device"], _segmentor_work(_LABELER["batch_size"], None, _LABELER_MODEL, True), 60, 2),
-    "train_supervised": (_DOWN["device"], _STUDENT_WORK, _STUDENT_RUNTIME, _downstream_workers("schedule")),
-    "train_gda": (_DOWN["device"], _STUDENT_WORK, _STUDENT_RUNTIME, _downstream_workers("schedule")),
-    "train_gda_curve": (_DOWN["device"], _STUDENT_WORK, _STUDENT_RUNTIME, _downstream_workers("schedule")),
+    **{rule: (_DOWN["device"], _STUDENT_WORK, _training_runtime(rule), _downstream_workers("schedule"))
+       for rule in _TRAININGS if rule.startswith(("train_supervised", "train_gda", "train_curve_pool", "train_study"))},
     "evaluate_segmentor": (_DOWN["device"], _segmentor_work(_DOWN["evaluation"]["batch_size"], None, _DOWN["models"], True),
                            60, 2),
     "gda_result": (False, 1000, 10, 1),
     "gda_curve": (False, 1000, 10, 1),
     # Detection (rules/detection.smk): importing a user's labeler is a small CPU job.
-    "train_box_labeler": (_DET["device"], _DETECTOR_WORK,
-                          _training_runtime(_DET["labeler"]["schedule"], _DET["device"], "detector",
-                                            split=lambda w: f"{w.platform}_train"),
+    "train_box_labeler": (_DET["device"], _DETECTOR_WORK, _training_runtime("train_box_labeler"),
                           _downstream_workers("det", "labeler", "schedule")),
     "pseudo_box": (_DET["device"], Work(2000), 60, 2),
-    "train_detector": (_DET["device"], _DETECTOR_WORK,
-                       _training_runtime(_DET["schedule"], _DET["device"], "detector", split=lambda w: f"{w.platform}_train",
-                                         fraction=lambda w: int(w.pct) / 100),
-                       _downstream_workers("det", "schedule")),
+    **{rule: (_DET["device"], _DETECTOR_WORK, _training_runtime(rule), _downstream_workers("det", "schedule"))
+       for rule in ("train_detector_real", "train_detector_gda")},
     "evaluate_detector": (_DET["device"], Work(2000), 60, 2),
     "pi3det_result": (False, 1000, 10, 1),
 }
@@ -400,6 +443,70 @@ def previous_generator_segment(w):
     until = int(w.until) if hasattr(w, "until") else float("inf")
     ends = [e for e in GENERATOR_SEGMENT_ENDS if e < until]
     return [generator_segment(w.preset, ends[-1])] if ends else []
+
+
+# Downstream trainings (labelers, students, detectors) longer than their partition allows run as a
+# chain of segment jobs too: job k of n trains the k-th n-th of the run's own iteration count
+# (`--segment k/n`, which the trainer resolves once it has counted its scans) and leaves its state in
+# the training's work folder; the training's own job resumes the last part and writes the weights.
+# n comes from training_seconds, which counts scans alike before and after indexing (split_scans).
+_IMPORTED = {
+    "train_labeler": lambda w: bool(config["downstream"]["labeler"]["checkpoint"]),
+    "train_box_labeler": lambda w: bool(labeler_checkpoint(w.platform)),
+}
+
+
+def training_parts(rule, wildcards):
+    """How many jobs a downstream training runs as: 1, or a chain each within its partition's limit."""
+    if _IMPORTED.get(rule, lambda w: False)(wildcards):
+        return 1
+    limits = PARTITION_LIMITS and PARTITION_LIMITS.get(RESOURCES["partitions"]["gpu" if _job_gpus(rule) else "cpu"])
+    seconds = training_seconds(rule, wildcards)
+    if not limits or seconds is None or _runtime(seconds) <= limits.max_runtime:
+        return 1
+    per_job = (limits.max_runtime - RESOURCES["setup_min"]) * 60 / RESOURCES["margin"]
+    if per_job <= 0:
+        sys.exit(f"Invalid configuration: resources.setup_min leaves {rule} no time within the partition's limit "
+                 f"({limits.max_runtime:g} minutes, resources.partition_config)")
+    return math.ceil(seconds / per_job)
+
+
+def segment_record(final, part, parts):
+    """The record segment job ``part`` of ``parts`` of the training writing ``final`` leaves
+    (<folder>/segments/<name>.<part>of<parts>.json); with pattern strings, the segment rule's output."""
+    folder, name = os.path.split(os.path.splitext(final)[0])
+    return f"{folder}/segments/{name}.{part}of{parts}.json"
+
+
+def segment_output(final):
+    """Output pattern of a training rule's segment jobs."""
+    return segment_record(final, "{part,[0-9]+}", "{parts,[0-9]+}")
+
+
+def previous_segment(rule, final):
+    """Input function of a training and its segments: the segment job before this one in
+    the chain ([] for the first, and for a training that runs as one job). Seed variants name their
+    output <run>_seed<seed>.pt after ``final``'s <run>.pt."""
+    def previous(w):
+        parts = int(w.parts) if hasattr(w, "parts") else training_parts(rule, w)
+        part = int(w.part) if hasattr(w, "part") else parts
+        if part <= 1:
+            return []
+        path = final
+        if hasattr(w, "seed") and "{seed}" not in final:
+            path = path.replace(".pt", "_seed{seed}.pt")
+        return [segment_record(path.format(**{k: getattr(w, k) for k in w.keys()}), part - 1, parts)]
+
+    return previous
+
+
+def segment_flag(wildcards):
+    """The trainer's --segment argument in a segment job ('' in the training's own job)."""
+    if not hasattr(wildcards, "part"):
+        return ""
+    if not 1 <= int(wildcards.part) < int(wildcards.parts):
+        raise ValueError(f"segment {wildcards.part} of {wildcards.parts}: segment jobs are 1..{int(wildcards.parts) - 1}")
+    return f"--segment {wildcards.part}/{wildcards.parts}"
 
 
 def job_resources(rule):

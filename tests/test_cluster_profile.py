@@ -9,7 +9,7 @@ import stat
 
 import pytest
 
-from workflow_helpers import copy_workflow, snakemake
+from workflow_helpers import copy_workflow, limits_overlay, snakemake
 
 PAPER = ("--configfile", "config/paper.yaml")
 SLURM = ("--workflow-profile", "workflow/profiles/slurm")
@@ -211,12 +211,7 @@ def test_paper_dry_run_fits_the_shipped_partition_limits(workdir):
 def test_paper_generator_training_longer_than_its_partition_runs_as_a_chain_of_segment_jobs(workdir, tmp_path):
     """With a two-day limit on the GPU partition, the paper's ~5-day generator training is cut into
     segment jobs that each fit; the last job writes the weights (a real chain: test_generator_segments)."""
-    parts = tmp_path / "two_days.yaml"
-    parts.write_text("partitions:\n"
-                     "  gpu: {max_runtime: '2-00:00:00', max_mem_mb: 512000, max_cpus_per_task: 64, max_gpu: 8}\n"
-                     "  cpu: {max_runtime: '7-00:00:00', max_mem_mb: 256000, max_cpus_per_task: 64, max_gpu: 0}\n")
-    overlay = tmp_path / "limits.yaml"
-    overlay.write_text(f"resources: {{partition_config: {parts}}}\n")
+    overlay = limits_overlay(tmp_path, "2-00:00:00", "7-00:00:00")
     target = ("--", "data/generator/full/model.pt")
     out = snakemake(workdir, "--dry-run", *SLURM, "--default-resources", "slurm_account=testacct", *PAPER,
                     str(overlay), *target)
@@ -234,7 +229,8 @@ def test_paper_generator_training_longer_than_its_partition_runs_as_a_chain_of_s
 
 def test_downstream_training_runtimes_follow_their_schedules(tmp_path):
     """Epoch-based trainings ask for epochs x steps per epoch x batch x seconds per scan-step
-    (+ margin and set-up), counting the scans in their index or subset once those exist."""
+    (+ margin and set-up), counting the scans in the index of the configured root once it exists
+    (a subset: one out of every 100/percent of them)."""
     import json
     import math
 
@@ -247,15 +243,56 @@ def test_downstream_training_runtimes_follow_their_schedules(tmp_path):
     index, subset = workdir / "data/index/semantickitti.json", workdir / "data/subsets/semantickitti_1pct.json"
     index.parent.mkdir(parents=True)
     subset.parent.mkdir(parents=True)
-    index.write_text(json.dumps({"splits": {"train": [{}] * 19130, "val": [{}] * 4071}}))
-    subset.write_text(json.dumps({"entries": [{}] * 191}))
+    index.write_text(json.dumps({"root": "/datasets/SemanticKITTI/dataset",
+                                 "splits": {"train": [{}] * 19130, "val": [{}] * 4071}}))
+    subset.write_text(json.dumps({"entries": [{}] * 192}))
     after = _dry_run_resources(workdir, *PAPER, *target)
 
     def minutes(scans, epochs=15, batch=16, rate=0.09):  # paper.yaml's schedule, rates' defaults
         return math.ceil(10 + 1.5 * epochs * math.ceil(scans / batch) * batch * rate / 60)
 
     assert int(after["train_labeler"]["runtime"]) == minutes(19130)  # ~11 h: 100 % of the train split
-    assert int(after["train_supervised"]["runtime"]) == minutes(191)  # 1 %: minutes, not a flat 10 h
+    assert int(after["train_supervised"]["runtime"]) == minutes(192)  # 1 %: minutes, not a flat 10 h
+    # An index of another root (the synthetic world's, about to be remade) does not count.
+    index.write_text(json.dumps({"root": "data/synthetic/semantickitti", "splits": {"train": [{}] * 20}}))
+    assert int(_dry_run_resources(workdir, *PAPER, *target)["train_labeler"]["runtime"]) == 600
+
+
+def test_downstream_trainings_longer_than_their_partition_run_as_chains_of_segment_jobs(tmp_path):
+    """With a six-hour GPU partition the paper's labeler (~11 h on 19,130 scans) runs as two jobs and
+    a Pi3DET detector (80 epochs over 4,000 frames, ~127 h) as 22: each asks its share, within the
+    limit; segment k resumes segment k-1 and the training's own job resumes the last one."""
+    import json
+
+    (tmp_path / "wf").mkdir()
+    workdir = copy_workflow(tmp_path / "wf")
+    (workdir / "data/index").mkdir(parents=True)
+    (workdir / "data/index/semantickitti.json").write_text(json.dumps(
+        {"root": "/datasets/SemanticKITTI/dataset", "splits": {"train": [{}] * 19130, "val": [{}] * 4071}}))
+    (workdir / "data/index/pi3det.json").write_text(json.dumps(
+        {"root": "/datasets/Pi3DET", "splits": {"drone_train": [{}] * 4000, "drone_val": [{}] * 1000}}))
+    overlay = limits_overlay(tmp_path, "06:00:00", "7-00:00:00")
+    out = snakemake(workdir, "--dry-run", *SLURM, *PAPER, str(overlay), "--default-resources", "slurm_account=testacct",
+                    "--", "data/labeler/semantickitti.pt", "data/detection/drone/pv_rcnn_1pct_real.pt",
+                    "data/detection/drone/pv_rcnn_100pct_real.pt").stdout
+    jobs = re.findall(r"rule (train_\w+):\n    input: ([^\n]*)\n    output: (\S+).*?runtime=(\d+).*?Shell command: ([^\n]*)",
+                      out, re.S)
+    by_rule = {}
+    for rule, inputs, output, minutes, shell in jobs:
+        by_rule.setdefault(rule, []).append((inputs, output, int(minutes), shell))
+    assert {k: len(v) for k, v in by_rule.items()} == {
+        "train_labeler_segment": 1, "train_labeler": 1, "train_detector_real_segment": 21, "train_detector_real": 2}
+    assert all(m <= 360 for runs in by_rule.values() for _, _, m, _ in runs)
+    (seg_in, seg_out, _, seg_shell), = by_rule["train_labeler_segment"]
+    (final_in, _, _, final_shell), = by_rule["train_labeler"]
+    assert seg_out == "data/labeler/segments/semantickitti.1of2.json" and seg_out in final_in
+    assert "--segment 1/2" in seg_shell and "--segment" not in final_shell
+    assert "--work-dir work/labeler " in seg_shell and "--work-dir work/labeler " in final_shell
+    last = [r for r in by_rule["train_detector_real_segment"] if r[1].endswith(".21of22.json")][0]
+    assert "data/detection/drone/segments/pv_rcnn_100pct_real.20of22.json" in last[0]
+    assert "--work-dir work/data/detection/drone/pv_rcnn_100pct_real " in last[3]
+    one_pct = [r for r in by_rule["train_detector_real"] if "1pct" in r[1]][0]
+    assert "segments" not in one_pct[0]  # 40 frames: one job
 
 
 def test_sampling_from_the_student_asks_for_its_steps_and_its_distillation_fits(workdir, tmp_path):

@@ -93,3 +93,47 @@ def test_a_detector_chain_through_the_cli_ends_with_the_uninterrupted_weights(tm
     a, b = _weights(tmp_path / "whole.pt", "model_state"), _weights(tmp_path / "chain.pt", "model_state")
     assert torch.load(tmp_path / "chain.pt", weights_only=True)["train"]["resumed_from"] == 2
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+# --------------------------------------------------------------------------- through the workflow
+
+RUN = "data/segmentation/semantickitti/minkunet_1pct_real.pt"
+STUDENT = "downstream: {schedule: {iterations: 5, batch_size: 2, checkpoint_interval: 2, log_interval: 1}}\n"
+# 5 iterations x 2 scans x 450 s against a 30-minute partition (no set-up time, no margin): 4,500 s
+# in three jobs of 1,500 s: segments up to iterations 1 and 3, then the training's own job.
+CHAIN = "gpus: false, setup_min: 0, margin: 1, rates: {segmentor_scan_step_cpu_s: 450}, "
+
+
+@pytest.mark.slow
+def test_a_student_training_longer_than_its_partition_runs_as_a_chain_with_the_same_weights(tmp_path):
+    import re
+
+    from workflow_helpers import planned_jobs, snakemake, whole_and_chained
+
+    whole, chained, run, chain = whole_and_chained(tmp_path, STUDENT, RUN, CHAIN,
+                                                   ("data/segmentation", "work/data/segmentation"))
+    dry = snakemake(chained, "--dry-run", *chain, "--", RUN).stdout
+    jobs = re.findall(r"rule (train_supervised\w*):.*?output: (\S+).*?runtime=(\d+)", dry, re.S)
+    assert sorted((rule, out) for rule, out, _ in jobs) == [
+        ("train_supervised", RUN),
+        ("train_supervised_segment", "data/segmentation/semantickitti/segments/minkunet_1pct_real.1of3.json"),
+        ("train_supervised_segment", "data/segmentation/semantickitti/segments/minkunet_1pct_real.2of3.json")]
+    assert all(int(minutes) == 25 for _, _, minutes in jobs)  # each its share, within the 30 minutes
+    snakemake(chained, *chain, "--", RUN)
+
+    a, b = (torch.load(d / RUN, map_location="cpu", weights_only=True) for d in (whole, chained))
+    assert a["iterations"] == b["iterations"] == 5 and b["train"]["resumed_from"] == 3
+    assert all(torch.equal(a["state_dict"][k], b["state_dict"][k]) for k in a["state_dict"])
+    records = [json.loads((chained / f"data/segmentation/semantickitti/segments/minkunet_1pct_real.{k}of3.json")
+                          .read_text()) for k in (1, 2)]
+    assert [r["segment_until"] for r in records] == [1, 3]
+    log = (chained / "logs/downstream/train/semantickitti_minkunet_1pct_real.part2of3.log").read_text()
+    assert "resuming at iteration 1" in log
+    assert planned_jobs(chained, RUN, *chain) == {}
+    # Without the partition limit the training is one job whose inputs lack the chain's records:
+    # Snakemake reruns it, and it resumes the finished state instead of training again.
+    assert planned_jobs(chained, RUN, *run) == {"train_supervised": 1}
+    snakemake(chained, *run, "--", RUN)
+    assert "resuming at iteration 5" in (chained / "logs/downstream/train/semantickitti_minkunet_1pct_real.log").read_text()
+    c = torch.load(chained / RUN, map_location="cpu", weights_only=True)
+    assert all(torch.equal(a["state_dict"][k], c["state_dict"][k]) for k in a["state_dict"])

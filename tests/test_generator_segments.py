@@ -3,12 +3,10 @@ one uninterrupted run, bit for bit on CPU; a segment resumes its predecessor's s
 
 from __future__ import annotations
 
-import shutil
-
 import pytest
 import torch
 
-from workflow_helpers import copy_workflow, planned_jobs, snakemake
+from workflow_helpers import planned_jobs, snakemake, whole_and_chained
 
 pytestmark = pytest.mark.slow
 
@@ -16,28 +14,13 @@ MODEL = "data/generator/full/model.pt"
 # Five iterations; one costs 12 estimated minutes against a 30-minute partition (no set-up time, no
 # margin), so the chain is: iterations 0-2, 2-4, then the final job 4-5.
 RUN = "generator: {training: {iterations: 5, checkpoint_interval: 2}}\n"
-CHAIN = ("resources: {{gpus: false, setup_min: 0, margin: 1, rates: {{train_step_s: 184320}},\n"
-         "            runtime: {{build_domain: 30}}, partition_config: {parts}}}\n")
-PARTS = ("partitions:\n"
-         "  gpu: {max_runtime: '00:30:00', max_mem_mb: 64000, max_cpus_per_task: 16, max_gpu: 1}\n"
-         "  cpu: {max_runtime: '00:30:00', max_mem_mb: 64000, max_cpus_per_task: 16, max_gpu: 0}\n")
+# Set-up time and margin off, generator steps of 12 minutes.
+CHAIN = "gpus: false, setup_min: 0, margin: 1, rates: {train_step_s: 184320}, runtime: {build_domain: 30}, "
 
 
 def test_segment_chain_equals_an_uninterrupted_generator_training(tmp_path):
-    (tmp_path / "parts.yaml").write_text(PARTS)
-    (tmp_path / "run.yaml").write_text(RUN)
-    (tmp_path / "chain.yaml").write_text(CHAIN.format(parts=tmp_path / "parts.yaml"))
-    run = ("--configfile", "config/test.yaml", str(tmp_path / "run.yaml"))
-    chain = (*run, str(tmp_path / "chain.yaml"))
-
-    (tmp_path / "whole").mkdir()
-    whole = copy_workflow(tmp_path / "whole")
-    snakemake(whole, *run, "--", MODEL)
     # The same inputs, generator cut into a chain by the tighter partition.
-    shutil.copytree(whole, tmp_path / "chained", symlinks=True)
-    chained = tmp_path / "chained"
-    shutil.rmtree(chained / "data" / "generator")
-    shutil.rmtree(chained / "work" / "generator")
+    whole, chained, run, chain = whole_and_chained(tmp_path, RUN, MODEL, CHAIN, ("data/generator", "work/generator"))
     assert {k: v for k, v in planned_jobs(chained, MODEL, *chain).items() if k.startswith("train")} == \
         {"train_generator_segment": 2, "train_generator": 1}
     snakemake(chained, *chain, "--", MODEL)

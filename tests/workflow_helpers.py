@@ -26,6 +26,36 @@ def copy_workflow(dest: Path) -> Path:
     return dest
 
 
+def limits_overlay(folder: Path, gpu_runtime: str, cpu_runtime: str, extra: str = "") -> Path:
+    """A config overlay pointing resources.partition_config at a partition file with these time
+    limits (and a typical node's memory, CPUs and GPUs); ``extra``: more resources keys."""
+    parts = folder / f"partitions_{gpu_runtime}_{cpu_runtime}.yaml".replace(":", "")
+    parts.write_text("partitions:\n"
+                     f"  gpu: {{max_runtime: '{gpu_runtime}', max_mem_mb: 512000, max_cpus_per_task: 64, max_gpu: 8}}\n"
+                     f"  cpu: {{max_runtime: '{cpu_runtime}', max_mem_mb: 256000, max_cpus_per_task: 64, max_gpu: 0}}\n")
+    overlay = parts.with_name(parts.stem + "_overlay.yaml")
+    overlay.write_text(f"resources: {{{extra}partition_config: {parts}}}\n")
+    return overlay
+
+
+def whole_and_chained(tmp_path: Path, run_config: str, target: str, chain_resources: str, made: tuple[str, ...]):
+    """Make ``target`` in a copy of the workflow (config/test.yaml + ``run_config``), then copy that
+    tree without the ``made`` folders, to be made again as a segment chain under 30-minute
+    partitions (``chain_resources``: resources keys that make the training outlast them).
+    Returns (whole tree, chained tree, run config arguments, chain config arguments)."""
+    (tmp_path / "run.yaml").write_text(run_config)
+    run = ("--configfile", "config/test.yaml", str(tmp_path / "run.yaml"))
+    chain = (*run, str(limits_overlay(tmp_path, "00:30:00", "00:30:00", chain_resources)))
+    (tmp_path / "whole").mkdir()
+    whole = copy_workflow(tmp_path / "whole")
+    snakemake(whole, *run, "--", target)
+    chained = tmp_path / "chained"
+    shutil.copytree(whole, chained, symlinks=True)
+    for folder in made:
+        shutil.rmtree(chained / folder)
+    return whole, chained, run, chain
+
+
 def snakemake(workdir: Path, *args: str, check: bool = True, env: dict | None = None) -> subprocess.CompletedProcess:
     """Run snakemake in ``workdir`` with that directory's package copy first on the path
     (``env``: variables to set besides)."""

@@ -31,7 +31,8 @@ from omnilidar.downstream.det.checkpoints import save_payload
 from omnilidar.downstream.det.data_config import PlatformConfig
 from omnilidar.downstream.det.dataset import DetCollate, DetScanDataset, batch_to, count_boxes
 from omnilidar.downstream.det.model_config import build
-from omnilidar.downstream.seg.dataset import MixedBatchSampler, total_iterations
+from omnilidar.downstream.schedule import total_iterations
+from omnilidar.downstream.seg.dataset import MixedBatchSampler
 from omnilidar.errors import InputError
 
 def trajectory(settings: dict, detector: str, model: dict, real: list[dict], generated: list[dict]) -> dict:

@@ -37,6 +37,7 @@ from omnilidar.downstream.seg.label_spaces import (
 )
 from omnilidar.downstream.seg.lasermix import laser_mix
 from omnilidar.segnets.voxelize import SegBatch, collate
+from omnilidar.downstream.schedule import epoch_length, generated_per_epoch
 from omnilidar.errors import InputError
 from omnilidar.io import nuscenes, semantickitti
 
@@ -235,31 +236,13 @@ def epoch_plan(num_real: int, num_generated: int, mixing: dict, epoch: int, seed
     """
     rng = np.random.default_rng([int(seed), 0xE70C, int(epoch)])
     real = np.arange(num_real)
-    if num_generated == 0:
-        gen = np.empty(0, np.int64)
-    elif mixing["mode"] == "concat":
-        gen = num_real + np.arange(num_generated)
-    elif mixing["mode"] == "ratio":
-        share = float(mixing["generated_share"])
-        count = int(round(num_real * share / (1.0 - share))) if share < 1 else num_generated
+    count = generated_per_epoch(num_real, num_generated, mixing)
+    if mixing["mode"] == "ratio" and count:
         order = np.random.default_rng([int(seed), 0x6E4]).permutation(num_generated)
-        start = epoch * count
-        gen = num_real + order[(start + np.arange(count)) % num_generated]
+        gen = num_real + order[(epoch * count + np.arange(count)) % num_generated]
     else:
-        raise InputError(None, f"unknown mixing mode {mixing['mode']!r} (concat or ratio)")
+        gen = num_real + np.arange(count)
     return rng.permutation(np.concatenate([real, gen]))
-
-
-def epoch_length(num_real: int, num_generated: int, mixing: dict) -> int:
-    return len(epoch_plan(num_real, num_generated, mixing, 0, 0))
-
-
-def total_iterations(schedule: dict, num_real: int, num_generated: int, mixing: dict) -> int:
-    """Iterations of a run: ``schedule.iterations`` or ``epochs`` over the mixed set."""
-    if schedule.get("iterations"):
-        return int(schedule["iterations"])
-    per_epoch = math.ceil(epoch_length(num_real, num_generated, mixing) / schedule["batch_size"])
-    return int(schedule["epochs"]) * max(1, per_epoch)
 
 
 class MixedBatchSampler(torch.utils.data.Sampler):

@@ -39,7 +39,8 @@ from omnilidar.checkpoints import (checkpoint_iteration, iteration_runner, job_p
                                    write_segment_record)
 from omnilidar.devices import resolve_device
 from omnilidar.downstream.seg.checkpoints import save_payload
-from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset, total_iterations
+from omnilidar.downstream.schedule import total_iterations
+from omnilidar.downstream.seg.dataset import MixedBatchSampler, SegCollate, SegScanDataset
 from omnilidar.downstream.seg.label_spaces import LabelSpace
 from omnilidar.downstream.seg.models import build_segmentor, model_spec
 from omnilidar.segnets.voxelize import IGNORE_INDEX, SegBatch
