@@ -27,6 +27,7 @@ import torch
 import yaml
 
 sys.path.insert(0, str(Path(__file__).parent))
+import bench_record  # noqa: E402
 from bench_det_voxelrcnn import RANGE, VOXEL, synthetic_batch  # noqa: E402
 
 from omnilidar.dicts import deep_merge  # noqa: E402
@@ -79,13 +80,20 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--points", type=int, default=12000)
+    bench_record.out_arg(parser)
     args = parser.parse_args()
     cores = len(os.sched_getaffinity(0))
     one_per_core = run(cores, args.steps, args.points)
     oversubscribed = run(2 * cores, args.steps, args.points)
-    print(json.dumps({"cores": cores, "one_per_core": one_per_core, "two_per_core": oversubscribed,
-                      "throughput_ratio_two_vs_one_per_core":
-                          round(oversubscribed["steps_per_s"] / one_per_core["steps_per_s"], 3)}, indent=1))
+    figures = {"cores": cores, "one_per_core": one_per_core, "two_per_core": oversubscribed,
+               "throughput_ratio_two_vs_one_per_core": round(oversubscribed["steps_per_s"] / one_per_core["steps_per_s"], 3)}
+    print(json.dumps(figures, indent=1))
+    steps = [statistics.median(r["median_step_s"]) for r in (one_per_core, oversubscribed)]
+    bench_record.write(args.out, [{
+        "what": f"{2 * cores} vs {cores} single-thread Voxel R-CNN (CPU_SMALL) training processes on the {cores} cores: "
+                "aggregate steps per second (why local runs start one job per core)",
+        "median": f"{2 * cores} processes get {figures['throughput_ratio_two_vs_one_per_core']:.3g}x the steps per second "
+                  f"of {cores} (median step {steps[0]:.2f} s with {cores}, {steps[1]:.2f} s with {2 * cores})"}], figures)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ import time
 
 import torch
 
+import bench_record
 from omnilidar.downstream.det.ops import nms, sampling
 from omnilidar.geometry import points_in_boxes as points, rotated_iou as iou
 
@@ -157,17 +158,23 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--quick", action="store_true", help="skip the largest sizes")
+    bench_record.out_arg(parser)
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     devices = [args.device] if args.device != "auto" else ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    rows, figures = [], {}
     for name in devices:
         device = torch.device(name)
         label = torch.cuda.get_device_name(device) if name == "cuda" else f"cpu, {torch.get_num_threads()} threads"
         print(f"# {label}, torch {torch.__version__}")
         gen = torch.Generator().manual_seed(0)
         for title, fn in cases(gen, device, args.quick):
-            print(f"{title:75s} {median_ms(fn, device, args.repeats):10.2f} ms", flush=True)
+            ms = median_ms(fn, device, args.repeats)
+            print(f"{title:75s} {ms:10.2f} ms", flush=True)
+            figures.setdefault(label, {})[title] = ms
+            rows.append({"what": f"{title} ({label})", "median": f"{ms:.3g} ms"})
+    bench_record.write(args.out, rows, figures)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 import yaml
 
+import bench_record
 from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.models.detector import build_detector
 from omnilidar.downstream.det.models.point_head_simple import PointHeadSimple
@@ -76,7 +77,7 @@ def timed(fn, repeats: int, device) -> float:
     return statistics.median(times)
 
 
-def whole_detector(section: str, points: int, device, repeats: int) -> None:
+def whole_detector(section: str, points: int, device, repeats: int, out_path) -> None:
     """Train step and inference of the whole PV-RCNN (Car) on bench_det_voxelrcnn's scene."""
     spec = importlib.util.spec_from_file_location("bench_det_voxelrcnn", ROOT / "benchmarks" / "bench_det_voxelrcnn.py")
     voxelrcnn_bench = importlib.util.module_from_spec(spec)
@@ -101,6 +102,12 @@ def whole_detector(section: str, points: int, device, repeats: int) -> None:
     if device.type == "cuda":
         out["max_memory_gib"] = torch.cuda.max_memory_allocated() / 2 ** 30
     print(json.dumps(out, indent=1))
+    grid = int(cfg["ROI_HEAD"]["ROI_GRID_POOL"]["GRID_SIZE"])
+    bench_record.write(out_path, [{
+        "what": f"PV-RCNN {'small (CPU_SMALL' if section == 'small' else 'paper (MODEL'}, {grid}^3 RoI grid), two "
+                f"{points / 1e3:.0f}k-point frames ({out['voxels'] / 1e3:.0f}k voxels), {device}",
+        "median": f"train step {statistics.median(train_s):.2f} s, inference {statistics.median(eval_s):.2f} s "
+                  f"({torch.get_num_threads()} threads)"}], out)
 
 
 def main() -> None:
@@ -109,10 +116,11 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--whole", choices=["paper", "small"], help="time the whole detector instead")
+    bench_record.out_arg(parser)
     args = parser.parse_args()
     device = torch.device(args.device)
     if args.whole:
-        whole_detector(args.whole, args.points, device, args.repeats)
+        whole_detector(args.whole, args.points, device, args.repeats, args.out)
         return
     torch.manual_seed(0)
     model = yaml.safe_load((ROOT / "config" / "detectors" / "pv_rcnn.yaml").read_text())["MODEL"]
@@ -143,6 +151,11 @@ def main() -> None:
           f"{int(pool_cfg['GRID_SIZE']) ** 3} grid points, torch threads {torch.get_num_threads()}")
     print(f"VSA + keypoint head + RoI-grid pooling: forward {t_fwd:.3f} s, forward+backward {t_bwd:.3f} s "
           f"(median of {args.repeats})")
+    bench_record.write(args.out, [{
+        "what": f"PV-RCNN's own stages at paper scale ({args.points / 1e3:.0f}k points, {model['PFE']['NUM_KEYPOINTS']} "
+                f"keypoints, 128 RoIs x {int(pool_cfg['GRID_SIZE'])}^3 grid): VSA + keypoint head + RoI-grid pooling",
+        "median": f"forward {t_fwd:.2f} s, forward+backward {t_bwd:.2f} s ({torch.get_num_threads()} threads, {device})"}],
+        {"forward_s": t_fwd, "forward_backward_s": t_bwd, "points": args.points})
 
 
 if __name__ == "__main__":

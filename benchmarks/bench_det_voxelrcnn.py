@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 import yaml
 
+import bench_record
 from omnilidar.dicts import deep_merge
 from omnilidar.downstream.det.models.detector import build_detector
 
@@ -80,6 +81,7 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=2)
     parser.add_argument("--config", default="paper", choices=["paper", "small"])
     parser.add_argument("--repeats", type=int, default=3)
+    bench_record.out_arg(parser)
     args = parser.parse_args()
     device = torch.device(args.device)
     doc = yaml.safe_load((Path(__file__).parent.parent / "config" / "detectors" / "voxel_rcnn.yaml").read_text())
@@ -109,6 +111,12 @@ def main() -> None:
     if device.type == "cuda":
         out["max_memory_gib"] = torch.cuda.max_memory_allocated() / 2 ** 30
     print(json.dumps(out, indent=1))
+    bench_record.write(args.out, [{
+        "what": f"Voxel R-CNN {'CPU_SMALL' if args.config == 'small' else 'paper MODEL'}, KITTI grid, batch "
+                f"{args.batch_size} ({out['voxels'] / 1e3:.0f}k voxels), {device}: training step (forward + backward) / inference",
+        "median": f"{sorted(train_s)[len(train_s) // 2]:.2f} / {sorted(eval_s)[len(eval_s) // 2]:.2f} s "
+                  f"({torch.get_num_threads()} threads)"}],
+        {k: v for k, v in out.items() if k in ("device", "config", "voxels", "train_step_s", "eval_s")})
 
 
 if __name__ == "__main__":

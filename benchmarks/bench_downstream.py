@@ -27,6 +27,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
+import bench_record  # noqa: E402
 
 
 def one(backbone: str, backend: str, width: str, voxel: float, batch: int, steps: int, device: str,
@@ -114,6 +115,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=2)
     ap.add_argument("--cpu-paths", action="store_true", help="SPVCNN's CPU allocator and devoxelisation compared")
     ap.add_argument("--child", help=argparse.SUPPRESS)
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(one(**json.loads(args.child))))
@@ -149,12 +151,21 @@ def main() -> None:
                       f"batch {args.batch}: {row['voxels']} voxels, {row['points']} points, median step "
                       f"{row['median_s']:.3f} s ({row['it_per_s']:.2f} it/s), peak {row['peak_mib']:.0f} MiB",
                       flush=True)
+    table = []
     for voxel in voxels:
         for backend in backends:
             pair = {r["backbone"]: r for r in rows if r["voxel"] == voxel and r["backend"] == backend}
             if len(pair) == 2:
                 print(f"ratio spvcnn/minkunet step time ({backend}, {voxel} m): "
                       f"{pair['spvcnn']['median_s'] / pair['minkunet']['median_s']:.2f}")
+            for name, r in pair.items():
+                ratio = (f" ({r['median_s'] / pair['minkunet']['median_s']:.1f}x MinkUNet)"
+                         if name == "spvcnn" and "minkunet" in pair else "")
+                table.append({"what": f"{'MinkUNet' if name == 'minkunet' else 'SPVCNN'} {args.width} training step "
+                                      f"({device}, {backend} backend, batch {args.batch}, {voxel} m voxels, "
+                                      f"{r['voxels'] / 1e3:.1f}k voxels)",
+                              "median": f"{r['median_s']:.2f} s, peak {r['peak_mib']:.0f} MiB{ratio}"})
+    bench_record.write(args.out, table, {"runs": rows, "steps": args.steps})
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from omnilidar.lidar.scan import Scan  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import bench_record  # noqa: E402
 from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 SENSOR = PRESETS["kitti_hdl64e"]
 
@@ -52,6 +53,7 @@ def timed(scan: Scan, params: dict, seeds, fidelity=None):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="fewer seeds, moderate-only sweep")
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     real_files_or_exit(KITTI_SCANS)  # one line before any table
     seeds = range(3 if args.quick else 7)
@@ -67,11 +69,12 @@ def main() -> None:
     scan = load("000001")
     rain.apply(scan, {"rate_mm_h": 1.0}, SENSOR, np.random.default_rng(0))  # warm the Mie cache
     print(f"\n== time per scan, {len(scan)} points, one thread, median of {len(seeds)} seeds (DEFAULT_FIDELITY)")
-    base = None
+    base, walls = None, {}
     for sev in rain.SEVERITIES:
         params = rain.nominal_params(sev)
         wall, cpu, _ = timed(scan, params, seeds)
         base = base or cpu
+        walls[sev] = wall
         print(f"  {sev:9s} {params['rate_mm_h']:7.1f} mm/h  wall {wall:.3f} s  cpu {cpu:.3f} s  (cpu / light {cpu / base:.2f})")
 
     print("\n== fidelity on real KITTI (mean over seeds; nominal rate per severity, and band edges)")
@@ -100,6 +103,10 @@ def main() -> None:
                 f"  ({row['mc_se_frac_rain']:.5f})"
             )
     print(f"\nDEFAULT_FIDELITY = {rain.DEFAULT_FIDELITY}")
+    bench_record.write(args.out, [{
+        "what": f"rain, per {len(scan) / 1e3:.0f}k-point scan",
+        "median": " / ".join(f"{w:.2f}" for w in walls.values()) + f" s ({' / '.join(walls)})",
+        "target": "<= 0.5 s (anchor 7-9 s)"}], {"wall_s": walls, "seeds": len(seeds), "threads": 1})
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
+import bench_record  # noqa: E402
 ANCHOR_S = 35.0  # anchor: ~35-42 s CPU per scan (REFERENCE 4)
 
 
@@ -30,12 +31,14 @@ def main():
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--no-sweep", action="store_true")
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     sensor = PRESETS["kitti_hdl64e"]
     scans = {p.stem: Scan(np.fromfile(p, np.float32).reshape(-1, 4)) for p in real_files_or_exit(KITTI_SCANS)}
     scan = scans["000001"]
     print(f"snow on kitti_object/velodyne/000001.bin ({len(scan)} points), one thread, fidelity {snow.DEFAULT_FIDELITY}")
     print(f"{'severity':9s} {'median_s':>9s} {'anchor/ours':>11s}")
+    medians = {}
     for sev, params in snow.SEVERITIES.items():
         times = []
         for i in range(args.repeats):
@@ -44,6 +47,11 @@ def main():
             times.append(time.perf_counter() - t0)
         med = float(np.median(times))
         print(f"{sev:9s} {med:9.3f} {ANCHOR_S / med:11.0f}x")
+        medians[sev] = med
+    bench_record.write(args.out, [{
+        "what": f"snow, per {len(scan) / 1e3:.0f}k-point scan",
+        "median": " / ".join(f"{m:.2f}" for m in medians.values()) + f" s ({' / '.join(medians)})",
+        "target": "<= 1 s (anchor 33-42 s)"}], {"median_s": medians, "repeats": args.repeats, "threads": 1})
 
     print("\nfidelity per scan and severity (mean over seeds; fractions of input points)")
     keys = ("changed", "lost", "weather", "dimmed", "intensity_shift_mean", "weather_range_median",

@@ -31,6 +31,7 @@ from omnilidar.lidar.scan import Scan  # noqa: E402
 from omnilidar.lidar.sensors import PRESETS  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import bench_record  # noqa: E402
 from real_samples import KITTI_SCANS, SEMANTICKITTI_SCAN, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
 SENSOR = PRESETS["kitti_hdl64e"]
 
@@ -53,6 +54,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--seeds", type=int, default=3)
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     scans = real_files_or_exit(KITTI_SCANS, SEMANTICKITTI_SCAN)
     rng = np.random.default_rng(0)
@@ -60,6 +62,7 @@ def main() -> None:
     print("fidelity per scan and severity (fractions of all points; shift of changed ground points)")
     print(f"{'scan':>22} {'severity':>9} {'changed':>8} {'lost':>7} {'added':>6} {'lost/gnd':>8} "
           f"{'rel.shift':>9} {'abs.shift':>9} {'ms':>7} {'gnd ms':>7}")
+    apply_ms, ground_ms = [], []
     for path in scans:
         scan = load(path)
         ground = estimate_ground(scan, SENSOR)
@@ -74,6 +77,8 @@ def main() -> None:
             old = scan.intensity[kept][ch].astype(np.float64)
             rel = float(np.mean(out.intensity[ch] / old - 1.0)) if ch.any() else 0.0
             t = median_s(lambda: W.apply(scan, params, SENSOR, np.random.default_rng(0), ground=ground), args.repeats)
+            apply_ms.append(t * 1e3)
+            ground_ms.append(t_ground * 1e3)
             print(f"{name:>22} {sev:>9} {stats['changed']:8.4f} {stats['lost']:7.4f} {stats['added']:6.3f} "
                   f"{info['lost'].sum() / max(ground.sum(), 1):8.4f} {rel:9.4f} {stats['mean_shift']:9.4f} "
                   f"{t * 1e3:7.2f} {t_ground * 1e3:7.2f}")
@@ -90,6 +95,10 @@ def main() -> None:
             print(f"{sev:>9} {r['knob']:>11} {r['value']:>6} {r['time_s'] * 1e3:7.2f} "
                   f"{r['time_s'] / top['time_s']:8.2f} {r['lost']:7.4f} {r['err_lost']:9.5f} {r['err_mean_shift']:9.5f}")
     print(f"\nDEFAULT_FIDELITY = {W.DEFAULT_FIDELITY}")
+    bench_record.write(args.out, [{
+        "what": f"wet ground (+ ground estimation), {len(scans)} real scans x {len(W.SEVERITIES)} severities",
+        "median": f"{min(apply_ms):.0f}-{max(apply_ms):.0f} ms (+ {min(ground_ms):.0f}-{max(ground_ms):.0f} ms)",
+        "target": "<= 0.05 s (anchor 0.05-0.08 s)"}], {"apply_ms": apply_ms, "ground_ms": ground_ms, "threads": 1})
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from omnilidar.metrics.extractors.weights import build_model, wrap
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from real_samples import KITTI_SCANS, real_files_or_exit  # noqa: E402  (OMNILIDAR_REAL_DATA)
+import bench_record  # noqa: E402
 
 
 def main() -> None:
@@ -34,6 +35,7 @@ def main() -> None:
     ap.add_argument("--scans", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--official-size", action="store_true")
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     spec = RangeImageSpec(args.height, args.width, 3.0, -25.0, 1.45, 80.0)
     imgs = []
@@ -50,6 +52,7 @@ def main() -> None:
     views = range_views(batch, spec)
     print(f"views: {(time.perf_counter() - t0) / args.scans * 1e3:.1f} ms/scan ({args.height}x{args.width}, "
           f"torch threads {torch.get_num_threads()})")
+    rates = {}
     for kind, arch in archs.items():
         ext = wrap(kind, build_model(kind, arch, generator=torch.Generator().manual_seed(0)))
         ext(views)  # warm-up
@@ -60,6 +63,13 @@ def main() -> None:
             times.append((time.perf_counter() - t0) / args.scans)
         med = statistics.median(times)
         print(f"{kind:5s} {str(arch):48s} median {med:.3f} s/scan  {1 / med:.2f} scans/s")
+        rates[kind] = 1 / med
+    size = "published widths" if args.official_size else "CPU self-trained sizes"
+    bench_record.write(args.out, [{
+        "what": f"feature extractors at {args.height}x{args.width} ({size}): "
+                + " / ".join(k.upper() for k in rates),
+        "median": " / ".join(f"{r:.1f}" for r in rates.values()) + f" scans/s ({torch.get_num_threads()} threads)"}],
+        {"scans_per_s": rates, "archs": archs})
 
 
 if __name__ == "__main__":

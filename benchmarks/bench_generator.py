@@ -25,6 +25,7 @@ import time
 
 import torch
 
+import bench_record
 from omnilidar.config import section_defaults
 from omnilidar.generator.diffusion import generate
 from omnilidar.generator.training import make_diffusion_model
@@ -65,22 +66,26 @@ def main() -> None:
                     help="HxW or HxW:CROP image geometries to compare (default: the config's)")
     ap.add_argument("--student", default=None, help="a distilled student checkpoint (distill_generator's output)")
     ap.add_argument("--prompts", default="data/generator/prompts.pt", help="prompt cache, with --student")
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     if args.student:
-        bench_student(args)
+        bench_record.write(args.out, *bench_student(args))
         return
+    rows, figures = [], {}
     geometries = args.geometries or [None]
     first = None
     for geometry in geometries:
-        result = bench_geometry(args, geometry)
+        result = bench_geometry(args, geometry, rows, figures)
         first = first or result
         if len(geometries) > 1:
             print(f"  {geometry}: train step ratio {result[0] / first[0]:.2f}, "
                   f"sampling ratio {result[1] / first[1]:.2f} (to {geometries[0]})")
+    bench_record.write(args.out, rows, figures)
 
 
-def bench_geometry(args, geometry: str | None) -> tuple[float, float]:
-    """Time one geometry; returns (median train step, median s/scan of the first sampler)."""
+def bench_geometry(args, geometry: str | None, rows: list, figures: dict) -> tuple[float, float]:
+    """Time one geometry, adding its table rows and figures; returns (median train step, median
+    s/scan of the first sampler)."""
 
     device = torch.device(args.device)
     settings = copy.deepcopy(section_defaults("generator"))
@@ -126,6 +131,10 @@ def bench_geometry(args, geometry: str | None) -> tuple[float, float]:
         if i:  # the first step warms up allocators and kernels
             times.append(time.perf_counter() - t0)
     step = statistics.median(times)
+    where = (f"{'paper' if args.paper else 'embedded default'} {h}x{w}{f', {crop}-column windows' if crop else ''}, "
+             f"{device}{', bf16' if args.bf16 else ''}, {torch.get_num_threads()} threads")
+    figures[f"{h}x{w}:{crop}"] = {"train_step_s": step, "batch": b_train, "sampling_s_per_scan": {}}
+    rows.append({"what": f"generator training step (batch {b_train}; {where})", "median": f"{step:.3g} s"})
     print(f"train step (batch {b_train}): median {step:.3f} s  -> {settings['training']['iterations']} "
           f"iterations ~ {step * settings['training']['iterations'] / 60:.1f} min")
     del opt, model
@@ -148,6 +157,9 @@ def bench_geometry(args, geometry: str | None) -> tuple[float, float]:
         first = first or per_scan
         print(f"sample {name:>8} {steps:4d} steps (batch {b_sample}): median {per_scan:.3f} s/scan  "
               f"ratio {per_scan / base:.2f}")
+        figures[f"{h}x{w}:{crop}"]["sampling_s_per_scan"][spec] = per_scan
+        rows.append({"what": f"sampling, {name} x {steps} (batch {b_sample}; {where})",
+                     "median": f"{per_scan:.3g} s per scan ({per_scan / base:.2f}x the first sampler)"})
     return step, first
 
 
@@ -173,7 +185,7 @@ def _time_sampling(den, payload, cache, sampler: str, steps: int, args, device) 
     return statistics.median(runs)
 
 
-def bench_student(args) -> None:
+def bench_student(args) -> tuple[list, dict]:
     """The student in its DDIM steps against its teacher's solvers, seconds per scan, one run."""
     from omnilidar.generator.checkpoint import load_generator
     from omnilidar.generator.text import load_prompt_cache
@@ -192,6 +204,9 @@ def bench_student(args) -> None:
     rows.append((f"student ddim:{steps}", _time_sampling(student, payload, cache, "ddim", steps, args, device)))
     for name, per_scan in rows:
         print(f"{name:>28}: median {per_scan:.3f} s/scan, {rows[0][1] / per_scan:.1f}x faster than {rows[0][0]}")
+    return ([{"what": f"{name} ({device}, {torch.get_num_threads()} threads)",
+              "median": f"{per_scan:.3g} s per scan ({rows[0][1] / per_scan:.1f}x faster than {rows[0][0]})"}
+             for name, per_scan in rows], {name: per_scan for name, per_scan in rows})
 
 
 if __name__ == "__main__":

@@ -44,6 +44,8 @@ from omnilidar.metrics.bev import (  # noqa: E402
 )
 from omnilidar.metrics.frechet import feature_statistics, frechet_distance, frechet_from_features  # noqa: E402
 
+import bench_record  # benchmarks/, the script's folder
+
 
 def synthetic_scan(rng: np.random.Generator, beams: int = 64, columns: int = 1875) -> np.ndarray:
     """(beams * columns, 4) float32: rays from 1.73 m height hitting the ground
@@ -81,7 +83,7 @@ def scipy_frechet(mu1, s1, mu2, s2) -> float:
     return float(np.real(np.sum((mu1 - mu2) ** 2) + np.trace(s1 + s2 - 2.0 * root)))
 
 
-def bench_bev(n_scans: int, repeats: int, pool: int, rng: np.random.Generator) -> None:
+def bench_bev(n_scans: int, repeats: int, pool: int, rng: np.random.Generator) -> dict:
     scans_pool = [synthetic_scan(rng) for _ in range(pool)]
     scans = [scans_pool[i % pool] for i in range(n_scans)]
     half = n_scans // 2
@@ -100,19 +102,23 @@ def bench_bev(n_scans: int, repeats: int, pool: int, rng: np.random.Generator) -
         ("LiDM MMD (from occupancies)", n_scans, lambda: lidm_mmd(occ[:half], occ[half:])),
     ]
     print(f"  {'stage':<30}{'median s':>10}{'scans/s':>12}")
+    rates = {}
     for name, count, fn in rows:
         t = median_s(fn, repeats)
+        rates[name] = count / t
         print(f"  {name:<30}{t:>10.4f}{count / t:>12.1f}")
     # the protocol's real-set size: MMD cost grows with the square of the set size
     big = np.concatenate([hists] * max(1, 2000 // n_scans))[:2000]
     big = big + rng.poisson(0.05, big.shape)
     t = median_s(lambda: bev_mmd(big[:1000], big[1000:]), 1)
     print(f"  {'R2Flow MMD, 1000 vs 1000':<30}{t:>10.4f}{2000 / t:>12.1f}")
+    return rates
 
 
-def bench_frechet(repeats: int, scipy_4096: bool, rng: np.random.Generator) -> None:
+def bench_frechet(repeats: int, scipy_4096: bool, rng: np.random.Generator) -> dict:
     print("Frechet distance from (mu, S) pairs (samples = 2 x dims, full-rank covariances)")
     print(f"  {'dims':>6}{'ours s':>10}{'scipy s':>10}{'ratio':>9}{'rel. diff':>12}")
+    times = {}
     for d in (512, 1808, 4096):
         a = rng.standard_normal((2 * d, d)) @ (rng.standard_normal((d, d)) / np.sqrt(d))
         b = rng.standard_normal((2 * d, d)) * 1.3 + 0.1
@@ -125,15 +131,18 @@ def bench_frechet(repeats: int, scipy_4096: bool, rng: np.random.Generator) -> N
             ref_value = scipy_frechet(mu1, s1, mu2, s2)
             ref = median_s(lambda: scipy_frechet(mu1, s1, mu2, s2), 1 if d > 512 else reps)
             diff = abs(ours_value - ref_value) / abs(ref_value)
+            times[d] = {"ours_s": ours, "scipy_s": ref}
             print(f"  {d:>6}{ours:>10.3f}{ref:>10.3f}{ref / ours:>9.1f}{diff:>12.2e}")
         else:
             print(f"  {d:>6}{ours:>10.3f}{'-':>10}{'-':>9}{'-':>12}")
+            times[d] = {"ours_s": ours}
     print("Frechet distance from features, fewer samples than dims (Gram route)")
     for n, d in ((2000, 4096), (1000, 1808)):
         a = rng.standard_normal((n, d))
         b = rng.standard_normal((n, d)) * 1.1
         t = median_s(lambda: frechet_from_features(a, b), repeats)
         print(f"  {n} vs {n} samples, {d} dims: {t:.3f} s")
+    return times
 
 
 def main() -> None:
@@ -145,13 +154,28 @@ def main() -> None:
     ap.add_argument("--scipy-4096", action="store_true", help="also time scipy's sqrtm at 4096-d (minutes)")
     ap.add_argument("--skip-bev", action="store_true")
     ap.add_argument("--skip-frechet", action="store_true")
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     print(f"BLAS threads: {os.environ.get('OPENBLAS_NUM_THREADS', 'default')}; cpus: {os.cpu_count()}")
+    rows, figures = [], {}
     if not args.skip_bev:
-        bench_bev(args.scans, args.repeats, args.pool, rng)
+        rates = figures["bev_scans_per_s"] = bench_bev(args.scans, args.repeats, args.pool, rng)
+        rows.append({"what": "BEV histograms / JSD / MMD (R2Flow's, 100 x 100)",
+                     "median": " / ".join(_rate(rates[k]) for k in ("BEV histograms (100x100)", "R2Flow JSD (from hists)",
+                                                                     "R2Flow MMD (from hists)")) + " scans/s"})
     if not args.skip_frechet:
-        bench_frechet(args.repeats, args.scipy_4096, rng)
+        times = figures["frechet_s"] = bench_frechet(args.repeats, args.scipy_4096, rng)
+        scipy = [f"{t['scipy_s']:.2g}" for t in times.values() if "scipy_s" in t]
+        rows.append({"what": "Frechet distance " + " / ".join(str(d) for d in times) + " dims",
+                     "median": " / ".join(f"{t['ours_s']:.2g}" for t in times.values()) + " s"
+                               + (f" (scipy sqrtm: {' / '.join(scipy)} s)" if scipy else ""),
+                     "target": "seconds at 4096-d"})
+    bench_record.write(args.out, rows, figures)
+
+
+def _rate(per_s: float) -> str:
+    return f"{per_s / 1e3:.0f}k" if per_s >= 1e4 else f"{per_s:.0f}"
 
 
 if __name__ == "__main__":

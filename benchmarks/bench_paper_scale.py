@@ -58,6 +58,8 @@ import sys
 import time
 from pathlib import Path
 
+import bench_record  # benchmarks/, the script's folder
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_SCAN = ROOT.parent / "shared" / "data" / "real" / "semantickitti" / "sequences" / "00" / "velodyne" / "000000.bin"
 # Token-embedding sizes of the CLIP text models the config may name (hidden_size of their text config).
@@ -382,6 +384,7 @@ def main() -> None:
     ap.add_argument("--scan", default=None, help="a KITTI .bin scan (default: the shared SemanticKITTI scan)")
     ap.add_argument("--text-dim", type=int, default=None, help="prompt-embedding size (default: from the config)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     if args.child:
         print(json.dumps(child(args)))
@@ -399,7 +402,7 @@ def main() -> None:
     header = (f"{'model':<10}{'params':>10}{'train s':>10}{'sample s':>10}{'peak RSS MiB':>14}"
               f"{'above base':>12}   input / notes")
     print(header)
-    failed = []
+    failed, rows, figures = [], [], {}
     for name in models:
         cmd = [sys.executable, __file__, "--child", name, "--config", args.config, "--repeats", str(args.repeats)]
         for flag, value in (("--threads", args.threads), ("--scan", args.scan), ("--text-dim", args.text_dim)):
@@ -415,6 +418,11 @@ def main() -> None:
         print(f"{name:<10}{r['parameters'] / 1e6:>9.2f}M{r['train_s']:>10.2f}{r['sample_s']:>10.2f}{peak:>14.0f}"
               f"{peak - r['rss_base']:>12.0f}   {r['input']}; {r['note']} (threads {r['threads']}; "
               f"sampling peak {r['rss_sample']:.0f} MiB)", flush=True)
+        figures[name] = r
+        rows.append({"what": f"{name}: {r['parameters'] / 1e6:.2f} M parameters; {r['input']}",
+                     "median": f"training step {r['train_s']:.1f} s, sampling / inference step {r['sample_s']:.1f} s, "
+                               f"peak RSS {peak:.0f} MiB ({peak - r['rss_base']:.0f} above base; {r['threads']} threads)"})
+    bench_record.write(args.out, rows, figures)
     if failed:
         raise SystemExit(f"failed at paper scale: {', '.join(failed)}")
 

@@ -25,6 +25,8 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+import bench_record  # noqa: E402
+
 
 def median_time(fn, repeats: int) -> float:
     times = []
@@ -39,6 +41,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--full", action="store_true", help="also generate the whole default dataset")
+    bench_record.out_arg(parser)
     args = parser.parse_args()
 
     t0 = time.perf_counter()
@@ -62,7 +65,7 @@ def main() -> None:
     gen = median_time(lambda: generate_scene(np.random.default_rng(5), settings["world"], 57.0), args.repeats)
     print(f"scene generation (57 m route, {len(scene.prims)} primitives): median {gen:.3f} s")
     print(f"{'sensor':<16}{'rays':>9}{'points':>9}{'cast s':>9}{'sweep s':>9}{'target':>9}")
-    kitti_sweep = None
+    kitti_sweep, sweeps = None, {}
     for name, platform in (("kitti_hdl64e", "vehicle"), ("nuscenes_hdl32e", "vehicle"), ("drone_os64", "drone"),
                            ("quadruped_os64", "quadruped")):
         spec = PRESETS[name]
@@ -76,9 +79,15 @@ def main() -> None:
                             args.repeats)
         target = "<= 0.5" if name == "kitti_hdl64e" else ""
         if name == "kitti_hdl64e":
-            kitti_sweep = sweep
+            kitti_sweep, kitti_cast, kitti_rays = sweep, cast, spec.num_beams * spec.azimuth_steps
+        sweeps[name] = {"rays": spec.num_beams * spec.azimuth_steps, "points": len(scan), "cast_s": cast, "sweep_s": sweep}
         print(f"{name:<16}{spec.num_beams * spec.azimuth_steps:>9}{len(scan):>9}{cast:>9.3f}{sweep:>9.3f}{target:>9}")
     print(f"KITTI sweep / 0.5 s target: {kitti_sweep / 0.5:.2f}")
+    bench_record.write(args.out, [
+        {"what": f"synthetic KITTI sweep ({PRESETS['kitti_hdl64e'].num_beams} x {kitti_rays // PRESETS['kitti_hdl64e'].num_beams} rays)",
+         "median": f"{kitti_sweep:.3f} s (ray cast {kitti_cast:.3f} s)", "target": "<= 0.5 s"},
+        {"what": "synthetic scene generation", "median": f"{gen:.2f} s per scene"},
+    ], {"scene_generation_s": gen, "sweeps": sweeps})
 
     if args.full:
         from omnilidar.data.synthetic.export import DATASETS, shard_names, write_shard

@@ -73,3 +73,24 @@ def test_a_short_block_renders_the_same_file_in_one_line(tmp_path):
     short, full = page.read_text().split("<!-- results:run_cost -->")
     assert "19 min 18 s, 63 jobs" in short and "1.5 GB on disk" in short and "|" not in short
     assert "| `downstream/train` | 2 | 2.0 | 2.5 |" in full and "The jobs held 2.0 CPU-minutes" in full
+
+
+def test_a_benchmark_writes_the_result_file_its_docs_table_is_rendered_from(tmp_path):
+    """A real (tiny) benchmark run with --out: its rows, the command without --out, and the page."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "bench_kernel_map.json"
+    subprocess.run([sys.executable, "benchmarks/bench_kernel_map.py", "--voxels", "2000", "--repeats", "1",
+                    "--out", str(out)], cwd=ROOT, check=True, capture_output=True)
+    doc = json.loads(out.read_text())
+    assert doc["command"] == "python benchmarks/bench_kernel_map.py --voxels 2000 --repeats 1"
+    (row,) = doc["rows"]
+    assert row["what"].startswith("submanifold 3^3 kernel map of 2k voxels") and " vs " in row["median"]
+    assert doc["figures"]["maps"][0]["same_pairs"] is True and doc["machine"]["cpus"] >= 1
+    page = tmp_path / "page.md"
+    page.write_text("<!-- results:bench_kernel_map -->\n<!-- /results:bench_kernel_map -->\n")
+    assert main(["docs", str(page), "--results", str(tmp_path)]) == 0
+    text = page.read_text()
+    assert f"| {row['what']} | {row['median']} |  |" in text
+    assert f"`{doc['command']}` (commit {doc['commit']}" in text

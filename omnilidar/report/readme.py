@@ -204,6 +204,15 @@ def pi3det_summary(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def benchmark(doc: dict) -> str:
+    """One benchmark's table (benchmarks/bench_record.py): its rows, the command and where it ran."""
+    m = doc["machine"]
+    lines = ["| what | median | target |", "|---|---|---|"]
+    lines += [f"| {r['what']} | {r['median']} | {r.get('target', '')} |" for r in doc["rows"]]
+    lines += ["", f"`{doc['command']}` (commit {doc['commit']}, {m['cpus']} CPUs, torch {m['torch']}, {doc['created'][:10]})"]
+    return "\n".join(lines)
+
+
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
              "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
              "student_check": student_check, "sampler_quickstart": sampler_points, "pi3det_summary": pi3det_summary,
@@ -215,9 +224,10 @@ def render_page(text: str, results: Path, page: str | Path | None = None) -> str
 
     def block(match: re.Match) -> str:
         name = match["name"]
-        if name not in RENDERERS:
-            raise InputError(page, f"unknown results block {name!r} (known: {', '.join(RENDERERS)})")
+        renderer = benchmark if name.startswith("bench_") else RENDERERS.get(name)
+        if renderer is None:
+            raise InputError(page, f"unknown results block {name!r} (known: {', '.join(RENDERERS)}, bench_<name>)")
         doc = read_json(Path(results) / f"{name.removesuffix('.short')}.json", f"result file of block {name!r} not found")
-        return f"{match.group(1)}{RENDERERS[name](doc).rstrip()}\n{match.group(4)}"
+        return f"{match.group(1)}{renderer(doc).rstrip()}\n{match.group(4)}"
 
     return BLOCK.sub(block, text)

@@ -1,0 +1,51 @@
+"""A benchmark's figures as a result file, so docs/benchmarks.md is written from it (`omnilidar docs`)
+instead of by hand: each benchmark takes ``--out docs/results/bench_<name>.json`` and records the
+rows of its table (what, median, target) beside its raw figures, the command that made them, the
+commit and the machine."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def out_arg(parser) -> None:
+    parser.add_argument("--out", type=Path, default=None,
+                        help="also write the figures as a result file (docs/results/bench_<name>.json)")
+
+
+def _command() -> str:
+    """The command as run, without --out (so a page quotes what to type to measure it again)."""
+    argv, skip = [], False
+    for arg in sys.argv[1:]:
+        if skip:
+            skip = False
+        elif arg == "--out":
+            skip = True
+        elif not arg.startswith("--out="):
+            argv.append(arg)
+    script = Path(sys.argv[0]).resolve().relative_to(Path(__file__).resolve().parents[1])
+    return " ".join(["python", script.as_posix(), *argv])
+
+
+def write(out: Path | None, rows: list[dict], figures: dict) -> None:
+    """Write the result file when ``--out`` was given. ``rows``: {"what", "median", "target"} strings,
+    one per table row; ``figures``: the raw numbers behind them."""
+    if out is None:
+        return
+    import torch
+
+    commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip() or None
+    doc = {"experiment": Path(out).stem, "command": _command(), "commit": commit,
+           "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+           "machine": {"cpus": len(os.sched_getaffinity(0)), "processor": platform.processor() or platform.machine(),
+                       "torch": torch.__version__, "python": platform.python_version()},
+           "rows": rows, "figures": figures}
+    Path(out).write_text(json.dumps(doc, indent=2) + "\n")
+    print(f"wrote {out}")
