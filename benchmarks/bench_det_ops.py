@@ -166,7 +166,8 @@ def main() -> None:
     rows, figures = [], {}
     for name in devices:
         device = torch.device(name)
-        label = torch.cuda.get_device_name(device) if name == "cuda" else f"cpu, {torch.get_num_threads()} threads"
+        threads = torch.get_num_threads()
+        label = torch.cuda.get_device_name(device) if name == "cuda" else f"cpu, {threads} thread{'s' * (threads > 1)}"
         print(f"# {label}, torch {torch.__version__}")
         gen = torch.Generator().manual_seed(0)
         for title, fn in cases(gen, device, args.quick):

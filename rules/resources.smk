@@ -294,8 +294,8 @@ _RULES = {
 
 
 # Local runs use at most the machine's cores, whatever --cores / -j says (resources.one_job_per_core):
-# every job runs torch on one thread, and two per core get less done in total than one (cache
-# and context-switch contention; benchmarks/bench_concurrency.py, docs/benchmarks.md). Lowering
+# every job runs torch on one thread, and two per core get no more done in total than one, in twice
+# the memory (benchmarks/bench_concurrency.py, docs/benchmarks.md). Lowering
 # the provided cores, rather than adding a resource, lets the scheduler sleep while they are
 # all busy (with free cores left it re-solves its job selection every second).
 MACHINE_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()

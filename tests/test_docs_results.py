@@ -94,3 +94,18 @@ def test_a_benchmark_writes_the_result_file_its_docs_table_is_rendered_from(tmp_
     text = page.read_text()
     assert f"| {row['what']} | {row['median']} |  |" in text
     assert f"`{doc['command']}` (commit {doc['commit']}" in text
+
+
+def test_domain_reports_render_every_effect_beside_its_anchor_and_every_knob_with_its_default():
+    fidelity = json.loads((ROOT / "docs/results/domain_fidelity.json").read_text())
+    text = readme.domain_fidelity(fidelity)
+    for effect in fidelity["effects"]:
+        assert f"| {effect.replace('_', ' ')} |" in text
+    assert "of ground" in text.split("| wet ground |")[1].split("\n")[0]  # wet ground loses ground points
+    assert "LISA (Kilic 2021) / TripleMixer: every zero-remission point lost; 7-9 s per scan" in text
+    tradeoff = json.loads((ROOT / "docs/results/effects_tradeoff.json").read_text())
+    text = readme.effects_tradeoff(tradeoff)
+    knobs = {(e, r["knob"]) for e, s in tradeoff["effects"].items() for r in s["rows"]}
+    assert text.count("\n| ") == len(knobs)  # one row per effect and knob
+    defaults = [r for s in tradeoff["effects"].values() for r in s["rows"] if r["is_default"]]
+    assert text.count("**") == 2 * len(defaults) and defaults

@@ -204,6 +204,82 @@ def pi3det_summary(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def _percent_range(spread: dict) -> str:
+    lo, hi = 100 * spread["min"], 100 * spread["max"]
+    return f"{lo:.2g}" if f"{lo:.2g}" == f"{hi:.2g}" else f"{lo:.2g}-{hi:.2g}"
+
+
+def _anchor_text(anchor: dict) -> str:
+    """The anchor's numbers of REFERENCE section 4 (omnilidar.domains.fidelity.ANCHORS), in words."""
+    parts = []
+    if "weather_fraction" in anchor:
+        parts.append("weather returns " + " / ".join(f"{100 * a:.0f}-{100 * b:.0f}" for a, b in
+                                                     anchor["weather_fraction"].values()) + " %")
+    if "ground_lost_fraction" in anchor:
+        a, b = anchor["ground_lost_fraction"]["fed_0_1"]
+        parts.append(f"{100 * a:.0f}-{100 * b:.0f} % of ground lost when fed 0..1")
+    if "clean_scan_deleted_by_noise_floor" in anchor:
+        a, b = anchor["clean_scan_deleted_by_noise_floor"]
+        parts.append(f"its noise floor deletes {100 * a:.0f}-{100 * b:.0f} % of a clean scan")
+    if anchor.get("zero_remission_points_lost") == 1.0:
+        parts.append("every zero-remission point lost")
+    if "beams_dropped" in anchor:
+        parts.append("beams dropped " + " / ".join(str(v) for v in anchor["beams_dropped"].values()))
+    seconds = anchor.get("seconds_per_scan")
+    if seconds is not None:
+        parts.append(f"{seconds if not isinstance(seconds, list) else '-'.join(f'{v:g}' for v in seconds)} s per scan")
+    return f"{anchor.get('anchor', '')}: {'; '.join(parts)}" if parts else anchor.get("anchor", "")
+
+
+def _scan_names(paths: list[str]) -> str:
+    return ", ".join("/".join(Path(p).parts[-3:]) for p in paths)
+
+
+def domain_fidelity(doc: dict) -> str:
+    """Per effect, over its severities (light / moderate / heavy): weather returns, lost points (of
+    the ground, for wet ground) and seconds per scan, min-max over scans and draws, beside the
+    anchor's figures (results/domain_fidelity.json)."""
+    lines = ["| effect | severities | weather returns (% of points) | lost (%) | seconds per scan | anchor |",
+             "|---|---|---|---|---|---|"]
+    for effect, entry in doc["effects"].items():
+        sev = entry["severities"]
+        lost_key = "ground_lost" if "ground_lost" in next(iter(sev.values())) else "lost"
+        added = " / ".join(_percent_range(v["added"]) for v in sev.values())
+        lost = " / ".join(_percent_range(v[lost_key]) for v in sev.values())
+        seconds = " / ".join(f"{v['seconds_per_scan']:.2g}" for v in sev.values())
+        lines.append(f"| {effect.replace('_', ' ')} | {' / '.join(sev)} | {added} | "
+                     f"{lost}{' of ground' if lost_key == 'ground_lost' else ''} | {seconds} | "
+                     f"{_anchor_text(entry['anchor'])} |")
+    ranges = [(e, v["added_range_quantiles"]) for e, entry in doc["effects"].items()
+              for v in entry["severities"].values() if v.get("added_range_quantiles")]
+    if ranges:
+        q = {e: (min(r["q05"] for name, r in ranges if name == e), max(r["q95"] for name, r in ranges if name == e))
+             for e, _ in ranges}
+        lines += ["", "Weather returns lie at (5-95 % of their ranges, over severities): "
+                  + "; ".join(f"{e.replace('_', ' ')} {lo:.1f}-{hi:.1f} m" for e, (lo, hi) in q.items()) + "."]
+    lines += ["", f"{len(doc['scans'])} scans x {len(doc['seeds']['draws'])} draws per severity "
+                  f"({_scan_names(doc['scans'])}), {doc['device']}."]
+    return "\n".join(lines)
+
+
+def effects_tradeoff(doc: dict) -> str:
+    """Per effect and numerical knob: each setting's seconds per scan and error of the effect's
+    primary statistic against the highest-fidelity setting, the chosen default in bold
+    (results/effects_tradeoff.json)."""
+    lines = ["| effect (severity) | knob | setting: ms per scan, error of the primary statistic |", "|---|---|---|"]
+    for effect, study in doc["effects"].items():
+        knobs: dict[str, list[str]] = {}
+        for row in study["rows"]:
+            text = f"{row['value']}: {1e3 * row['time_s']:.3g} ms, {row['errors'].get(study['primary_error'], 0):.2g}"
+            knobs.setdefault(row["knob"], []).append(f"**{text}**" if row["is_default"] else text)
+        for knob, settings in knobs.items():
+            lines.append(f"| {effect.replace('_', ' ')} ({study['severity']}) | {knob} | {'; '.join(settings)} |")
+    primaries = ", ".join(f"{e.replace('_', ' ')} `{s['primary_error']}`" for e, s in doc["effects"].items())
+    lines += ["", f"Primary statistics: {primaries}. On {_scan_names(doc['scans'])}, "
+                  f"{len(doc['seeds']['curves'])} seeds per setting, {doc['device']}."]
+    return "\n".join(lines)
+
+
 def benchmark(doc: dict) -> str:
     """One benchmark's table (benchmarks/bench_record.py): its rows, the command and where it ran."""
     m = doc["machine"]
@@ -216,7 +292,8 @@ def benchmark(doc: dict) -> str:
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
              "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
              "student_check": student_check, "sampler_quickstart": sampler_points, "pi3det_summary": pi3det_summary,
-             "run_cost_detection": run_cost}
+             "run_cost_detection": run_cost, "domain_fidelity": domain_fidelity,
+             "effects_tradeoff": effects_tradeoff}
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
