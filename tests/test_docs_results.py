@@ -109,3 +109,13 @@ def test_domain_reports_render_every_effect_beside_its_anchor_and_every_knob_wit
     assert text.count("\n| ") == len(knobs)  # one row per effect and knob
     defaults = [r for s in tradeoff["effects"].values() for r in s["rows"] if r["is_default"]]
     assert text.count("**") == 2 * len(defaults) and defaults
+
+
+def test_the_sampler_grid_names_the_best_solver_per_budget_and_the_students_check():
+    doc = json.loads((ROOT / "docs/results/student_check.json").read_text())
+    text = readme.sampler_grid(doc)
+    rows = [line for line in text.splitlines() if re.match(r"\| \d+ \|", line)]
+    assert [int(r.split("|")[1]) for r in rows] == sorted(int(b) for b in doc["best_per_budget"])
+    best = doc["best_per_budget"]["20"]["JSD"]
+    assert f"{best['sampler']}: {best['value']:.4g} +- {best['std']:.2g}" in rows[-1]
+    assert "the 2-step student is within two standard deviations" in text and "Recommended" in text

@@ -171,6 +171,28 @@ def student_check(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def sampler_grid(doc: dict) -> str:
+    """The best training-free sampler per budget of network evaluations, per metric (the full grid of
+    results/tradeoff.json), then the recommended setting and the student's check."""
+    metrics = doc["metrics"]
+    heads = [f"{m} (x 1e-4)" if m == "MMD" else m for m in metrics]
+    lines = ["| network evaluations | " + " | ".join(heads) + " |", "|---|" + "---|" * len(metrics)]
+    for budget, best in sorted(doc["best_per_budget"].items(), key=lambda kv: int(kv[0])):
+        cells = [f"{best[m]['sampler']}: {best[m]['value']:.4g} +- {best[m]['std']:.2g} (of {best[m]['candidates']})"
+                 for m in metrics]
+        lines.append(f"| {budget} | " + " | ".join(cells) + " |")
+    settings = sorted({p["sampler"] for p in doc["points"]})
+    lines += ["", f"{len(doc['points'])} settings of {len(settings)} solvers ({', '.join(settings)}); domains "
+                  f"{', '.join(doc['domains'])}; each metric the mean over {doc['seeds']['seed_groups']} groups of "
+                  f"scans with distinct sampling seeds +- their spread; {doc['device']}. Recommended "
+                  f"({doc['recommend_rule']}): "
+              + "; ".join(f"{m} {r['sampler']} x {r['steps']} ({r['seconds_per_scan']:.3g} s per scan)"
+                          for m, r in doc["recommended"].items()) + "."]
+    if doc.get("student_check"):
+        lines += student_check(doc).split("\n")[len(sampler_points(doc).split("\n")):]
+    return "\n".join(lines)
+
+
 def pi3det_summary(doc: dict) -> str:
     """Every Pi3DET target: Car 3D AP R11 (R40) per detector, supervised-only -> GDA, and the box
     labeler's own val AP with the pseudo-boxes it kept."""
@@ -293,7 +315,8 @@ RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposit
              "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
              "student_check": student_check, "sampler_quickstart": sampler_points, "pi3det_summary": pi3det_summary,
              "run_cost_detection": run_cost, "domain_fidelity": domain_fidelity,
-             "effects_tradeoff": effects_tradeoff}
+             "effects_tradeoff": effects_tradeoff,
+             "sampler_grid": sampler_grid}
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
