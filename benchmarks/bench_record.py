@@ -33,6 +33,19 @@ def _command() -> str:
     return " ".join(["python", script.as_posix(), *argv])
 
 
+def _git(*args: str) -> str:
+    return subprocess.run(["git", *args], capture_output=True, text=True, cwd=Path(__file__).parent).stdout.rstrip("\n")
+
+
+def _commit() -> str | None:
+    """The commit measured, with the tracked files changed since named; docs/ does not count (a
+    benchmark run rewrites its result files there, and no benchmark reads the pages)."""
+    head = _git("rev-parse", "--short", "HEAD") or None
+    changed = [line[3:] for line in _git("status", "--porcelain", "--untracked-files=no").splitlines()
+               if not line[3:].startswith("docs/")]
+    return f"{head} + uncommitted {', '.join(changed)}" if head and changed else head
+
+
 def write(out: Path | None, rows: list[dict], figures: dict) -> None:
     """Write the result file when ``--out`` was given. ``rows``: {"what", "median", "target"} strings,
     one per table row; ``figures``: the raw numbers behind them."""
@@ -40,8 +53,7 @@ def write(out: Path | None, rows: list[dict], figures: dict) -> None:
         return
     import torch
 
-    commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent).stdout.strip() or None
+    commit = _commit()
     doc = {"experiment": Path(out).stem, "command": _command(), "commit": commit,
            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
            "machine": {"cpus": len(os.sched_getaffinity(0)), "processor": platform.processor() or platform.machine(),
