@@ -133,17 +133,17 @@ _DOWN_H = RESOURCES["rates"]["downstream_hours"] * 60
 
 
 @functools.cache
-def split_scans(dataset, split):
-    """Scans of one split of a dataset, counted alike before and after the dataset is indexed (so a
-    training's segment chain, which depends on it, stays the same): from its index when that exists
-    for the configured root, else by listing a real root; None when neither is there (a synthetic world not made yet, a
-    missing root)."""
+def _split_counts(dataset):
+    """{split: scans} of a dataset, counted alike before and after it is indexed (so a training's
+    segment chain, which depends on it, stays the same): from its index when that exists for the
+    configured root, else by listing a real root; None when neither is there (a synthetic world not
+    made yet, a missing root). Read once per planning."""
     root = dataset_root(dataset)
     try:
         with open(f"{DATA}/index/{dataset}.json") as fh:
             index = json.load(fh)
         if index.get("root") == str(root):  # not an index of another root, about to be remade
-            return len(index.get("splits", {}).get(split, []))
+            return {split: len(entries) for split, entries in index.get("splits", {}).items()}
     except (OSError, ValueError):
         pass
     if is_synthetic(dataset) or not os.path.isdir(root):
@@ -151,9 +151,15 @@ def split_scans(dataset, split):
     from omnilidar.data.index import build_index
 
     try:
-        return len(build_index(dataset, root)["splits"].get(split, []))
+        return {split: len(entries) for split, entries in build_index(dataset, root)["splits"].items()}
     except InputError:
         return None
+
+
+def split_scans(dataset, split):
+    """Scans of one split of a dataset (_split_counts), None when they cannot be counted yet."""
+    counts = _split_counts(dataset)
+    return None if counts is None else counts.get(split, 0)
 
 
 def subset_scans(dataset, split, percent):
@@ -172,26 +178,27 @@ def _study_schedule(w):
 
 
 # What each downstream training trains on, from its wildcards: (schedule, device, rates key, mixing
-# or None, real scans or None when they cannot be counted yet, generated scans).
+# or None, a function counting the real scans (None when they cannot be counted yet; called only for
+# an epoch schedule), generated scans).
 _TRAININGS = {
     "train_labeler": lambda w: (_LABELER["schedule"], _LABELER["device"], "segmentor", None,
-                                split_scans("semantickitti", "train"), 0),
+                                lambda: split_scans("semantickitti", "train"), 0),
     "train_supervised": lambda w: (_DOWN["schedule"], _DOWN["device"], "segmentor", None,
-                                   subset_scans(w.dataset, "train", w.pct), 0),
+                                   lambda: subset_scans(w.dataset, "train", w.pct), 0),
     "train_gda": lambda w: (_DOWN["schedule"], _DOWN["device"], "segmentor", _DOWN["mixing"],
-                            subset_scans(w.dataset, "train", w.pct), len(gda_domains(w)) * _SCANS_PER_DOMAIN),
+                            lambda: subset_scans(w.dataset, "train", w.pct), len(gda_domains(w)) * _SCANS_PER_DOMAIN),
     "train_gda_curve": lambda w: (_DOWN["schedule"], _DOWN["device"], "segmentor", _DOWN["mixing"],
-                                  subset_scans(w.dataset, "train", w.pct), int(w.scans)),
+                                  lambda: subset_scans(w.dataset, "train", w.pct), int(w.scans)),
     "train_curve_pool": lambda w: (_DOWN["schedule"], _DOWN["device"], "segmentor", _DOWN["mixing"],
-                                   subset_scans("semantickitti", "train", w.pct), int(w.scans)),
+                                   lambda: subset_scans("semantickitti", "train", w.pct), int(w.scans)),
     "train_study": lambda w: (_study_schedule(w), _DOWN["device"], "segmentor", _DOWN["mixing"],
-                              subset_scans("semantickitti", "train", w.pct), 0 if w.row == "real" else int(w.scans)),
+                              lambda: subset_scans("semantickitti", "train", w.pct), 0 if w.row == "real" else int(w.scans)),
     "train_box_labeler": lambda w: (_DET["labeler"]["schedule"], _DET["device"], "detector", None,
-                                    split_scans("pi3det", f"{w.platform}_train"), 0),
+                                    lambda: split_scans("pi3det", f"{w.platform}_train"), 0),
     "train_detector_real": lambda w: (_DET["schedule"], _DET["device"], "detector", None,
-                                      subset_scans("pi3det", f"{w.platform}_train", w.pct), 0),
+                                      lambda: subset_scans("pi3det", f"{w.platform}_train", w.pct), 0),
     "train_detector_gda": lambda w: (_DET["schedule"], _DET["device"], "detector", _DET["mixing"],
-                                     subset_scans("pi3det", f"{w.platform}_train", w.pct), _SCANS_PER_DOMAIN),
+                                     lambda: subset_scans("pi3det", f"{w.platform}_train", w.pct), _SCANS_PER_DOMAIN),
 }
 _TRAININGS |= {f"{rule}_seed": _TRAININGS[rule] for rule in ("train_supervised", "train_gda", "train_gda_curve",
                                                               "train_curve_pool")}
@@ -204,10 +211,11 @@ def training_seconds(rule, wildcards):
     epoch schedule whose scans cannot be counted yet."""
     from omnilidar.downstream.schedule import total_iterations
 
-    schedule, device, kind, mixing, real, generated = _TRAININGS[rule](wildcards)
-    if not schedule["iterations"] and real is None:
+    schedule, device, kind, mixing, count_real, generated = _TRAININGS[rule](wildcards)
+    real = 0 if schedule["iterations"] else count_real()  # an iteration schedule needs no count
+    if real is None:
         return None
-    steps = total_iterations(schedule, real or 0, generated, mixing or {"mode": "concat"})
+    steps = total_iterations(schedule, real, generated, mixing or {"mode": "concat"})
     on_gpu = cluster_gpus() and uses_cuda(device)
     return steps * schedule["batch_size"] * RESOURCES["rates"][f"{kind}_scan_step_s" if on_gpu else f"{kind}_scan_step_cpu_s"]
 
@@ -461,8 +469,10 @@ def training_parts(rule, wildcards):
     if _IMPORTED.get(rule, lambda w: False)(wildcards):
         return 1
     limits = PARTITION_LIMITS and PARTITION_LIMITS.get(RESOURCES["partitions"]["gpu" if _job_gpus(rule) else "cpu"])
+    if not limits:  # a local run: no limit to fit
+        return 1
     seconds = training_seconds(rule, wildcards)
-    if not limits or seconds is None or _runtime(seconds) <= limits.max_runtime:
+    if seconds is None or _runtime(seconds) <= limits.max_runtime:
         return 1
     per_job = (limits.max_runtime - RESOURCES["setup_min"]) * 60 / RESOURCES["margin"]
     if per_job <= 0:
