@@ -46,9 +46,9 @@ def _commit() -> str | None:
     return f"{head} + uncommitted {', '.join(changed)}" if head and changed else head
 
 
-def write(out: Path | None, rows: list[dict], figures: dict) -> None:
-    """Write the result file when ``--out`` was given. ``rows``: {"what", "median", "target"} strings,
-    one per table row; ``figures``: the raw numbers behind them."""
+def write(out: Path | None, rows: list[dict], figures: dict, columns: list[str] | None = None) -> None:
+    """Write the result file when ``--out`` was given. ``rows``: one dict of strings per table row,
+    keyed by ``columns`` (default what, median, target); ``figures``: the raw numbers behind them."""
     if out is None:
         return
     import torch
@@ -59,5 +59,7 @@ def write(out: Path | None, rows: list[dict], figures: dict) -> None:
            "machine": {"cpus": len(os.sched_getaffinity(0)), "processor": platform.processor() or platform.machine(),
                        "torch": torch.__version__, "python": platform.python_version()},
            "rows": rows, "figures": figures}
+    if columns is not None:
+        doc["columns"] = list(columns)
     Path(out).write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {out}")

@@ -96,6 +96,26 @@ def test_a_benchmark_writes_the_result_file_its_docs_table_is_rendered_from(tmp_
     assert f"`{doc['command']}` (commit {doc['commit']}" in text
 
 
+def test_a_benchmark_with_its_own_columns_renders_them(tmp_path):
+    """bench_parameters: a table whose columns are its own (part, one per text encoder, reference)."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "bench_parameters.json"
+    subprocess.run([sys.executable, "benchmarks/bench_parameters.py", "--config", "config/config.yaml",
+                    "--text-dims", "384", "--out", str(out)], cwd=ROOT, check=True, capture_output=True)
+    doc = json.loads(out.read_text())
+    assert doc["columns"] == ["part", "text tokens of 384", "reference"]
+    counts = doc["figures"]["parameters"]["384"]
+    assert counts["total"] == sum(v for k, v in counts.items() if k != "total") and counts["cdfm"] > 0
+    page = tmp_path / "page.md"
+    page.write_text("<!-- results:bench_parameters -->\n<!-- /results:bench_parameters -->\n")
+    assert main(["docs", str(page), "--results", str(tmp_path)]) == 0
+    text = page.read_text()
+    assert "| part | text tokens of 384 | reference |\n|---|---|---|" in text
+    assert f"| total | {counts['total'] / 1e6:.2f} M | the paper's OmniLiDAR 97.73 M |" in text
+
+
 def test_domain_reports_render_every_effect_beside_its_anchor_and_every_knob_with_its_default():
     fidelity = json.loads((ROOT / "docs/results/domain_fidelity.json").read_text())
     text = readme.domain_fidelity(fidelity)

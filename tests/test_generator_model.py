@@ -8,7 +8,8 @@ import torch
 
 from omnilidar.generator.cdfm import CDFM, make_mamba, mamba_parameter_shapes
 from omnilidar.generator.dafs import DAFS
-from omnilidar.generator.unet import CircularConv2d, EfficientUNet, UNetConfig, build_denoiser, count_parameters
+from omnilidar.generator.unet import (CircularConv2d, EfficientUNet, UNetConfig, build_denoiser, count_parameters,
+                                      parameter_breakdown)
 from test_generator_fixtures import one_torch_thread, tiny_settings  # noqa: F401
 
 
@@ -171,6 +172,21 @@ def test_config_errors_and_paper_scale_parameter_count():
     with torch.device("meta"):
         n = count_parameters(EfficientUNet(cfg, torch.zeros(32, 64, 1024)))
     assert 50e6 < n < 120e6  # paper: 97.73 M; ours is reported in the README/benchmark
+
+
+def test_parameter_breakdown_sums_to_the_total_and_follows_the_switches():
+    cfg = dict(base_channels=8, channel_multipliers=(1, 2), num_res_blocks=1, groupnorm_groups=4, text_dim=8,
+               cdfm_levels=(1,), cross_attention_levels=(1,), mamba_backend="mambapy")
+    with torch.device("meta"):
+        full = parameter_breakdown(EfficientUNet(UNetConfig(**cfg), torch.zeros(32, 16, 64)))
+        bare = parameter_breakdown(EfficientUNet(UNetConfig(**cfg, cdfm=False, dafs=False, cross_attention=False),
+                                                 torch.zeros(32, 16, 64)))
+        wide_text = parameter_breakdown(EfficientUNet(UNetConfig(**{**cfg, "text_dim": 16}), torch.zeros(32, 16, 64)))
+    assert sum(v for k, v in full.items() if k != "total") == full["total"]
+    assert min(full.values()) > 0
+    assert bare["cdfm"] == bare["dafs"] == bare["cross_attention"] == 0
+    assert bare["backbone"] == bare["total"] == full["backbone"]  # switching the parts off leaves the backbone
+    assert wide_text["cross_attention"] > full["cross_attention"] and wide_text["backbone"] == full["backbone"]
 
 
 def test_v_skip_output_keeps_x0_bounded_near_t1_where_direct_does_not():

@@ -302,6 +302,22 @@ def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
+def parameter_breakdown(model: "EfficientUNet") -> dict[str, int]:
+    """Trainable parameters by part: the text conditioning (cross-attention and the pooled-prompt
+    projection), CDFM, DAFS, and the backbone (everything else); ``total`` is their sum."""
+
+    def of(*modules: nn.Module | None) -> int:
+        return sum(count_parameters(m) for m in modules if m is not None)
+
+    parts = {
+        "cross_attention": of(model.text_pool, *(m for m in model.modules() if isinstance(m, CrossAttention))),
+        "cdfm": of(*(m for m in model.modules() if isinstance(m, CDFM))),
+        "dafs": of(*(m for m in model.modules() if isinstance(m, DAFS))),
+    }
+    total = count_parameters(model)
+    return {"backbone": total - sum(parts.values()), **parts, "total": total}
+
+
 def range_image_spec(settings: dict):
     """The RangeImageSpec of a validated ``generator`` section."""
     from omnilidar.data.range_image import RangeImageSpec

@@ -305,8 +305,9 @@ def effects_tradeoff(doc: dict) -> str:
 def benchmark(doc: dict) -> str:
     """One benchmark's table (benchmarks/bench_record.py): its rows, the command and where it ran."""
     m = doc["machine"]
-    lines = ["| what | median | target |", "|---|---|---|"]
-    lines += [f"| {r['what']} | {r['median']} | {r.get('target', '')} |" for r in doc["rows"]]
+    columns = doc.get("columns", ["what", "median", "target"])
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines += ["| " + " | ".join(str(r.get(c, "")) for c in columns) + " |" for r in doc["rows"]]
     lines += ["", f"`{doc['command']}` (commit {doc['commit']}, {m['cpus']} CPUs, torch {m['torch']}, {doc['created'][:10]})"]
     return "\n".join(lines)
 
