@@ -152,16 +152,9 @@ def is_synthetic(name):
 
 def synthetic_shards(name):
     """Shard names (sequences, platforms or splits) the synthetic world writes for one dataset."""
-    spec = config["synthetic"]["datasets"][name]
-    if name == "semantickitti":
-        return [f"{int(s):02d}" for s in spec["sequences"]]
-    if name == "kitti360":
-        return [f"{int(s):04d}" for s in spec["sequences"]]
-    if name == "pi3det":
-        return list(spec["platforms"])
-    if name == "nuscenes":
-        return list(spec["splits"])
-    raise ValueError(f"unknown dataset {name}")
+    from omnilidar.data.synthetic.export import shard_names
+
+    return shard_names(name, config["synthetic"])
 
 
 # Where each dataset's shard lies below its synthetic root (the dataset's own layout), and

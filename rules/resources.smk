@@ -136,8 +136,8 @@ _DOWN_H = RESOURCES["rates"]["downstream_hours"] * 60
 def _split_counts(dataset):
     """{split: scans} of a dataset, counted alike before and after it is indexed (so a training's
     segment chain, which depends on it, stays the same): from its index when that exists for the
-    configured root, else by listing a real root; None when neither is there (a synthetic world not
-    made yet, a missing root). Read once per planning."""
+    configured root, else from the synthetic world's settings (what it will write) or by listing a
+    real root; None for a real root that is missing or unreadable. Read once per planning."""
     root = dataset_root(dataset)
     try:
         with open(f"{DATA}/index/{dataset}.json") as fh:
@@ -146,7 +146,11 @@ def _split_counts(dataset):
             return {split: len(entries) for split, entries in index.get("splits", {}).items()}
     except (OSError, ValueError):
         pass
-    if is_synthetic(dataset) or not os.path.isdir(root):
+    if is_synthetic(dataset):
+        from omnilidar.data.synthetic.export import planned_split_counts
+
+        return planned_split_counts(dataset, config["synthetic"])
+    if not os.path.isdir(root):
         return None
     from omnilidar.data.index import build_index
 
@@ -157,7 +161,7 @@ def _split_counts(dataset):
 
 
 def split_scans(dataset, split):
-    """Scans of one split of a dataset (_split_counts), None when they cannot be counted yet."""
+    """Scans of one split of a dataset (_split_counts), None when they cannot be counted."""
     counts = _split_counts(dataset)
     return None if counts is None else counts.get(split, 0)
 
@@ -178,7 +182,7 @@ def _study_schedule(w):
 
 
 # What each downstream training trains on, from its wildcards: (schedule, device, rates key, mixing
-# or None, a function counting the real scans (None when they cannot be counted yet; called only for
+# or None, a function counting the real scans (None when they cannot be counted; called only for
 # an epoch schedule), generated scans).
 _TRAININGS = {
     "train_labeler": lambda w: (_LABELER["schedule"], _LABELER["device"], "segmentor", None,
@@ -208,7 +212,7 @@ def training_seconds(rule, wildcards):
     """Estimated seconds of one downstream training: steps (schedule.iterations, or epochs over the
     mixed training scans) x batch x seconds per scan and step on the job's device
     (resources.rates.<kind>_scan_step_s on a GPU, <kind>_scan_step_cpu_s on a CPU); None for an
-    epoch schedule whose scans cannot be counted yet."""
+    epoch schedule whose scans cannot be counted."""
     from omnilidar.downstream.schedule import total_iterations
 
     schedule, device, kind, mixing, count_real, generated = _TRAININGS[rule](wildcards)
@@ -223,7 +227,7 @@ def training_seconds(rule, wildcards):
 def _training_runtime(rule):
     """Minutes each job of a downstream training asks: its share of the estimate where the training
     runs as a chain of segment jobs (training_parts); rates.downstream_hours for an epoch schedule
-    whose scans cannot be counted yet (a dry run before a synthetic world is made)."""
+    whose scans cannot be counted (a real root that is missing)."""
     def runtime(wildcards, input):
         seconds = training_seconds(rule, wildcards)
         return int(_DOWN_H) if seconds is None else _runtime(seconds / training_parts(rule, wildcards))

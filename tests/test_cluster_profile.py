@@ -258,6 +258,34 @@ def test_downstream_training_runtimes_follow_their_schedules(tmp_path):
     assert int(_dry_run_resources(workdir, *PAPER, *target)["train_labeler"]["runtime"]) == 600
 
 
+def test_an_epoch_schedule_on_a_synthetic_world_not_made_yet_is_planned_from_its_settings(tmp_path):
+    """Before the synthetic world exists, an epoch-based labeler asks what its schedule needs over the
+    scans the world's settings will write (not rates.downstream_hours), the same as once it is indexed."""
+    import json
+
+    (tmp_path / "wf").mkdir()
+    workdir = copy_workflow(tmp_path / "wf")
+    overlay = tmp_path / "epochs.yaml"
+    overlay.write_text("downstream:\n  labeler:\n    schedule: {iterations: null, epochs: 40}\n")
+    args = ("--configfile", "config/config.yaml", str(overlay), "--", "data/labeler/semantickitti.pt")
+    before = int(_dry_run_resources(workdir, *args)["train_labeler"]["runtime"])
+    assert not (workdir / "data/synthetic").exists()
+    assert before != 10 * 60  # not the flat rates.downstream_hours
+
+    from omnilidar.config import load_config
+    from omnilidar.data.synthetic.export import planned_split_counts
+
+    cfg = load_config(workdir / "config/config.yaml")
+    planned = planned_split_counts("semantickitti", cfg["synthetic"])
+    (workdir / "data/index").mkdir(parents=True)
+    index = {"root": "data/synthetic/semantickitti", "splits": {k: [{}] * n for k, n in planned.items()}}
+    (workdir / "data/index/semantickitti.json").write_text(json.dumps(index))
+    assert int(_dry_run_resources(workdir, *args)["train_labeler"]["runtime"]) == before
+    index["splits"]["train"] *= 4  # a world four times larger asks more
+    (workdir / "data/index/semantickitti.json").write_text(json.dumps(index))
+    assert int(_dry_run_resources(workdir, *args)["train_labeler"]["runtime"]) > before
+
+
 def test_downstream_trainings_longer_than_their_partition_run_as_chains_of_segment_jobs(tmp_path):
     """With a six-hour GPU partition the paper's labeler (~11 h on 19,130 scans) runs as two jobs and
     a Pi3DET detector (80 epochs over 4,000 frames, ~127 h) as 22: each asks its share, within the

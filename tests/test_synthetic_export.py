@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from omnilidar.cli import main
-from omnilidar.data.synthetic.export import NUSCENES_GENERAL, shard_names, to_nuscenes_general
+from omnilidar.data.synthetic.export import NUSCENES_GENERAL, planned_split_counts, shard_names, to_nuscenes_general
 from omnilidar.config import section_defaults
 from omnilidar.io import kitti360, nuscenes, pi3det, semantickitti
 from omnilidar.io.semantickitti import LEARNING_MAP
@@ -133,3 +133,23 @@ def test_default_shards_match_the_workflow_naming():
     assert shard_names("kitti360", d)[0] == "0000"
     assert shard_names("pi3det", d) == ["vehicle", "drone", "quadruped"]
     assert shard_names("nuscenes", d) == ["train", "val"]
+
+
+def test_planned_split_counts_are_what_the_written_world_indexes(tmp_path):
+    """The workflow plans segment chains from planned_split_counts before the world exists: every
+    dataset's planned {split: scans} equals its index once every shard is written."""
+    from omnilidar.config import validate
+    from omnilidar.data.index import build_index
+
+    settings = validate(json.loads(json.dumps(TINY)), "synthetic.schema.yaml")
+    where = {"semantickitti": lambda root, shard: root / "sequences" / shard,
+             "kitti360": lambda root, shard: root / "data_3d_raw" / f"2013_05_28_drive_{shard}_sync",
+             "pi3det": lambda root, shard: root / shard, "nuscenes": lambda root, shard: root / shard}
+    for dataset, folder in where.items():
+        root = tmp_path / dataset
+        for shard in shard_names(dataset, settings):
+            assert synth(dataset, shard, folder(root, shard)) == 0
+        indexed = {split: len(entries) for split, entries in build_index(dataset, root)["splits"].items()}
+        planned = planned_split_counts(dataset, settings)
+        assert {k: v for k, v in planned.items() if v} == {k: v for k, v in indexed.items() if v}, dataset
+    assert planned_split_counts("pi3det", settings)["drone_val"] == 1
