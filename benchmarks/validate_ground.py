@@ -1,6 +1,6 @@
 """Validate omnilidar.domains.ground.estimate_ground on every platform. Run:
 
-    python benchmarks/validate_ground.py [--scenes 4] [--figure-dir /tmp]
+    python benchmarks/validate_ground.py [--scenes 4] [--figure-dir /tmp] [--out docs/results/bench_ground.json]
 
 1. Ray-cast test scenes (tests/ground_scenes.py: sloped ground plane, 0.15 m
    curbs, cars, walls, poles, pedestrians) seen from the vehicle (HDL-64E at
@@ -28,6 +28,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
+import bench_record  # noqa: E402  (benchmarks/, the script's folder)
 from ground_scenes import make_scene, platform_sensors, tilted  # noqa: E402
 from real_samples import KITTI_SCANS, SEMANTICKITTI_SCAN, SEMANTICKITTI_TINY, real_files_or_exit  # noqa: E402
 
@@ -63,8 +64,9 @@ def synthetic_table(n_scenes: int) -> None:
                   f"{agg('iou'):>15} {np.median([r['ms'] for r in rows]):6.1f}")
 
 
-def real_table(figure_dir: Path | None) -> None:
+def real_table(figure_dir: Path | None) -> list[dict]:
     print("\nreal KITTI scans (HDL-64E preset; no labels)")
+    results = []
     print(f"{'scan':>40} {'points':>7} {'ground %':>8} {'within 0.2 m':>12} {'plane z0':>8} {'ms':>6}")
     sensor = PRESETS["kitti_hdl64e"]
     for path in real_files_or_exit(KITTI_SCANS, SEMANTICKITTI_SCAN):
@@ -79,8 +81,11 @@ def real_table(figure_dir: Path | None) -> None:
         within = np.abs(g[:, 2] - (a * g[:, 0] + b * g[:, 1] + c)) < 0.2
         name = "/".join(path.parts[-4:])
         print(f"{name:>40} {len(pts):>7} {100 * mask.mean():8.1f} {100 * within.mean():11.1f}% {c:8.3f} {dt * 1e3:6.1f}")
+        results.append({"scan": name, "points": len(pts), "ground": float(mask.mean()),
+                        "within_0.2m": float(within.mean()), "plane_z0": float(c), "ms": dt * 1e3})
         if figure_dir is not None:
             save_bev(pts, mask, figure_dir / f"ground_bev_{path.parts[-3]}_{path.stem}.png")
+    return results
 
 
 def save_bev(pts: np.ndarray, mask: np.ndarray, out: Path) -> None:
@@ -111,7 +116,7 @@ def tiny_table() -> None:
           + ", ".join(f"{k} {v:.3f}" for k, v in scores.items()))
 
 
-def world_table(n_scans: int) -> None:
+def world_table(n_scans: int) -> dict[str, dict]:
     """Scans of the synthetic world per platform (skipped until it is complete)."""
     from omnilidar.errors import InputError
 
@@ -123,11 +128,12 @@ def world_table(n_scans: int) -> None:
         world, radiometry = settings["world"], settings["radiometry"]
     except (ImportError, InputError, KeyError) as err:
         print(f"\nsynthetic world: skipped ({err})")
-        return
+        return {}
     print("\nsynthetic world (omnilidar.data.synthetic)")
     print(f"{'platform':>10} {'scans':>5} {'precision':>9} {'recall':>9} {'IoU':>9}")
     rng = np.random.default_rng(0)
     world_scene = scene.generate_scene(rng, world, 80.0)
+    results = {}
     for platform, sensor in platform_sensors().items():
         poses = trajectory.route_poses(world_scene, platform, sensor, n_scans, 20.0, rng)
         scores = []
@@ -136,18 +142,28 @@ def world_table(n_scans: int) -> None:
             scores.append(mask_scores(estimate_ground(scan, sensor), ground_truth_mask(scan.semantic)))
         mean = {k: np.mean([s[k] for s in scores]) for k in scores[0]}
         print(f"{platform:>10} {len(scores):>5} {mean['precision']:9.3f} {mean['recall']:9.3f} {mean['iou']:9.3f}")
+        results[platform] = {"scans": len(scores), **{k: float(v) for k, v in mean.items()}}
+    return results
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=4)
     ap.add_argument("--figure-dir", type=Path, default=Path("/tmp"))
+    bench_record.out_arg(ap)
     args = ap.parse_args()
     real_files_or_exit(KITTI_SCANS, SEMANTICKITTI_SCAN, SEMANTICKITTI_TINY)  # one line before any table
     synthetic_table(args.scenes)
-    real_table(args.figure_dir)
+    real = real_table(args.figure_dir)
     tiny_table()
-    world_table(3)
+    world = world_table(3)
+    rows = [{"what": f"synthetic world, {platform} ({w['scans']} scans, labelled)",
+             "result": f"precision {w['precision']:.3f}, recall {w['recall']:.3f}, IoU {w['iou']:.3f}"}
+            for platform, w in world.items()]
+    rows += [{"what": f"real KITTI {r['scan']} (no labels)",
+              "result": f"{100 * r['ground']:.1f} % of points called ground, {100 * r['within_0.2m']:.1f} % of them "
+                        f"within 0.2 m of a plane at {r['plane_z0']:.2f} m"} for r in real]
+    bench_record.write(args.out, rows, {"synthetic_world": world, "real": real}, columns=["what", "result"])
 
 
 if __name__ == "__main__":
