@@ -1,6 +1,6 @@
 """Realism report: synthetic KITTI-like scans beside real KITTI scans.
 
-    python benchmarks/compare_synthetic_real.py FIGURE.png [--scenes 4] [--scans-per-scene 2]
+    python benchmarks/compare_synthetic_real.py FIGURE.png [--scenes 4] [--scans-per-scene 2] [--out FILE]
 
 Real data: the three full HDL-64E sweeps in OMNILIDAR_REAL_DATA (two KITTI
 object scans and SemanticKITTI 00/000000). Those have no per-point labels (the
@@ -17,6 +17,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+import bench_record  # benchmarks/, the script's folder
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
@@ -41,6 +43,7 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=4)
     parser.add_argument("--scans-per-scene", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
+    bench_record.out_arg(parser)
     args = parser.parse_args()
     real_scans = real_files_or_exit(REAL_SCANS)
 
@@ -65,25 +68,21 @@ def main() -> None:
     r = scan_statistics([read_scan(p) for p in real_scans])
 
     print(f"synthetic: {s['num_scans']} scans from {args.scenes} scenes; real: {r['num_scans']} KITTI sweeps")
-    print(f"{'quantity':<34}{'synthetic':>12}{'real':>12}")
-    print(f"{'points per scan (mean)':<34}{s['points_per_scan']['mean']:>12.0f}{r['points_per_scan']['mean']:>12.0f}")
-    print(f"{'exact-zero remission fraction':<34}{s['zero_remission_fraction']:>12.3f}{r['zero_remission_fraction']:>12.3f}")
     edges = s["range_edges_m"]
-    for i in range(len(edges) - 1):
-        label = f"range {edges[i]:g}-{edges[i + 1]:g} m"
-        print(f"{label + ' share':<34}{s['range_fraction'][i]:>12.3f}{r['range_fraction'][i]:>12.3f}")
-    for i in range(len(edges) - 1):
-        label = f"range {edges[i]:g}-{edges[i + 1]:g} m"
-        print(f"{label + ' zero share':<34}{s['zero_remission_by_range'][i]:>12.3f}{r['zero_remission_by_range'][i]:>12.3f}")
-    for i in range(len(edges) - 1):
-        label = f"range {edges[i]:g}-{edges[i + 1]:g} m"
-        print(f"{label + ' mean remission':<34}{s['mean_remission_by_range'][i]:>12.3f}{r['mean_remission_by_range'][i]:>12.3f}")
-    print(f"\n{'class share':<20}{'synthetic':>12}{'SemanticKITTI':>15}{'ratio':>8}")
+    bands = [f"{edges[i]:g}-{edges[i + 1]:g} m" for i in range(len(edges) - 1)]
+    quantities = [("points per scan (mean)", s["points_per_scan"]["mean"], r["points_per_scan"]["mean"], ".0f"),
+                  ("exact-zero remission fraction", s["zero_remission_fraction"], r["zero_remission_fraction"], ".3f")]
+    for key, what in (("range_fraction", "share of points"), ("zero_remission_by_range", "zero-remission share"),
+                      ("mean_remission_by_range", "mean remission")):
+        quantities += [(f"{what}, range {band}", s[key][i], r[key][i], ".3f") for i, band in enumerate(bands)]
     cf = s["class_fraction"] or {}
-    for name, ref in SEMANTICKITTI_CLASS_SHARE.items():
-        v = cf.get(name, 0.0)
-        ratio = v / ref if ref > 0 else float("nan")
-        print(f"{name:<20}{v:>12.4f}{ref:>15.4f}{ratio:>8.2f}")
+    quantities += [(f"class share {name} (real: published SemanticKITTI)", cf.get(name, 0.0), ref, ".4f")
+                   for name, ref in SEMANTICKITTI_CLASS_SHARE.items()]
+    columns = ["quantity", f"synthetic ({s['num_scans']} scans)", f"real KITTI ({r['num_scans']} sweeps)"]
+    rows = []
+    for what, synthetic, real, fmt in quantities:
+        rows.append(dict(zip(columns, (what, format(synthetic, fmt), format(real, fmt)))))
+        print(f"{what:<52}{format(synthetic, fmt):>12}{format(real, fmt):>12}")
 
     fig, ax = plt.subplots(2, 2, figsize=(12, 8))
     centers = [f"{edges[i]:g}-{edges[i + 1]:g}" for i in range(len(edges) - 1)]
@@ -117,6 +116,9 @@ def main() -> None:
     with atomic_path(args.figure) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
     print(f"\nfigure: {args.figure}")
+    bench_record.write(args.out, rows, {"quantities": {what: [float(a), float(b)] for what, a, b, _ in quantities},
+                                        "scenes": args.scenes, "scans_per_scene": args.scans_per_scene,
+                                        "seed": args.seed}, columns=columns)
 
 
 if __name__ == "__main__":
