@@ -1,5 +1,5 @@
-"""Progressive distillation: the target's algebra, a real tiny distillation run, resume, provenance,
-sampling with the student in every domain, and the workflow's wiring."""
+"""Progressive and consistency distillation: the targets' algebra, real tiny distillation runs,
+resume, provenance, sampling with the student in every domain, and the workflow's wiring."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import torch
 
 from omnilidar.errors import InputError
 from omnilidar.generator.checkpoint import load_generator
-from omnilidar.generator.distill import ddim_move, distillation_loss, student_steps, two_step_target
+from omnilidar.generator.distill import consistency_loss, ddim_move, distillation_loss, student_steps, two_step_target
 from omnilidar.generator.sampling import sample_shard, student_sampling
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
 from omnilidar.generator.text import build_prompt_cache, load_prompt_cache
@@ -85,12 +85,39 @@ def test_the_exact_teacher_teaches_itself_and_a_wrong_student_pays_its_error(cro
     assert float(wrong) >= 0.01 * (1 - 1e-3)  # x0 off by 0.1 everywhere, weight max(SNR, 1) >= 1
 
 
+@pytest.mark.parametrize("crop_width", [None, 4])
+def test_consistency_the_exact_denoiser_is_consistent_and_the_boundary_pins_a_wrong_one(crop_width):
+    """The exact denoiser's x0 is c at every t, so it agrees with itself one step later; at s = 0 the
+    target is the teacher's landing (about c), so a student whose x0 is off by 0.1 pays there."""
+    c = torch.linspace(-0.5, 0.5, 2 * 4 * 8).reshape(1, 2, 4, 8)
+    image = c.expand(3, -1, -1, -1).clone()
+    args = (image, torch.zeros(3, dtype=torch.long), torch.zeros(3, 2, 5), torch.ones(3, 2, dtype=torch.bool),
+            CosineLogSNRSchedule())
+    exact = PointMass(c)
+    assert float(consistency_loss(exact, exact, *args, 4, torch.Generator().manual_seed(1), crop_width=crop_width)) < 1e-5
+    wrong = consistency_loss(PointMass(c + 0.1), exact, *args, 1, torch.Generator().manual_seed(1), crop_width=crop_width)
+    assert float(wrong) >= 0.01 * 0.9  # every draw is at the boundary on a one-step grid
+
+
+def test_a_tiny_consistency_distillation_writes_its_student(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    cd = copy.deepcopy(settings)
+    cd["distillation"]["method"] = "consistency"
+    summary = train_generator(cd, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                              teacher=root / "model.pt")
+    assert summary["iterations"] == 4
+    payload = torch.load(tmp_path / "student.pt", map_location="cpu", weights_only=True)
+    assert payload["student"]["method"] == "consistency" and payload["student"]["steps"] == 1
+    progressive, consistency = _state(root / "student.pt"), _state(tmp_path / "student.pt")
+    assert not all(torch.equal(progressive[k], consistency[k]) for k in progressive)
+
+
 def test_a_tiny_distillation_writes_a_one_step_student(teacher):
     root, settings, _, _, summary = teacher
     assert summary["iterations"] == 4 and summary["resumed_from"] == 0
     payload = torch.load(root / "student.pt", map_location="cpu", weights_only=True)
     assert payload["student"] == {"sampler": "ddim", "steps": 1, "teacher": str(root / "model.pt"),
-                                  "teacher_steps": 4, "rounds": 2}
+                                  "teacher_steps": 4, "rounds": 2, "method": "progressive"}
     assert student_steps(settings["distillation"]) == 1
     prov = payload["provenance"]
     assert prov["command"] == "distill-generator" and set(prov["inputs"]) == {"domains", "prompts", "teacher"}

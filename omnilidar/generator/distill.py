@@ -1,4 +1,6 @@
-"""Progressive distillation (Salimans & Ho, 2022) of the generator into a few-step student.
+"""Distillation of the generator into a few-step student: progressive distillation (Salimans &
+Ho, 2022; ``distillation.method: progressive``, the default) or consistency distillation (Song et
+al., 2023; ``consistency``), at the same budget of optimizer steps and sampled alike.
 
 Each round halves the number of deterministic DDIM steps (uniform in t): the student learns to
 cover in one step what the round's teacher covers in two. Round 0's teacher is the trained
@@ -20,6 +22,14 @@ z_t must use to land on z_t''::
     x~ = (z_t'' - (sigma_t'' / sigma_t) z_t) / (alpha_t'' - (sigma_t'' / sigma_t) alpha_t)
 
 The loss is the x0 error weighted by max(SNR(t), 1) ("truncated SNR" weighting).
+
+Consistency distillation, for the measured comparison: the student's x0 estimate f(z_t, t) is
+trained to agree with its own estimate one teacher step later, f(z_s, s), where z_s is the frozen
+trained generator's DDIM step from z_t on the grid of ``teacher_steps`` (t = n / N, s = t - 1/N);
+at s = 0 the target is z_s itself (the boundary condition f(z, 0) = z). The target is the
+student's own estimate without gradient (the improved-consistency-training choice of no EMA
+target network). It trains ``rounds x iterations_per_round`` steps, the progressive budget, and
+the student samples in the same ``teacher_steps / 2^rounds`` DDIM steps.
 """
 
 from __future__ import annotations
@@ -28,6 +38,9 @@ import torch
 
 from omnilidar.generator.diffusion import azimuth_windows
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, predict_x0
+
+
+METHODS = ("progressive", "consistency")
 
 
 def student_steps(distillation: dict) -> int:
@@ -61,14 +74,9 @@ def two_step_target(z_t: torch.Tensor, z_target: torch.Tensor, logsnr_t: torch.T
     return ((z_target.double() - _per_scan(ratio) * z_t.double()) / _per_scan(a_u - ratio * a_t)).float()
 
 
-def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
-                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
-                      generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
-    """Truncated-SNR weighted x0 error of the ``steps``-step student against two teacher steps.
-
-    Noise, times and azimuth windows come from ``generator`` in the order of
-    :func:`omnilidar.generator.diffusion.epsilon_loss` (windows, time, noise).
-    """
+def _draw(image: torch.Tensor, steps: int, generator: torch.Generator, crop_width: int | None):
+    """Azimuth windows (when training on them), a step index in 1..steps and the noise, drawn in
+    that order: (the windowed image, the denoiser's extra arguments, index, noise)."""
     b = image.shape[0]
     extra = {}
     if crop_width is not None and crop_width < image.shape[-1]:
@@ -77,6 +85,18 @@ def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image:
         extra = {"columns": columns}
     index = torch.randint(1, steps + 1, (b,), generator=generator, device=image.device)
     eps = torch.randn(image.shape, generator=generator, device=image.device, dtype=torch.float32)
+    return image, extra, index, eps
+
+
+def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
+                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
+                      generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
+    """Truncated-SNR weighted x0 error of the ``steps``-step student against two teacher steps.
+
+    Noise, times and azimuth windows come from ``generator`` in the order of
+    :func:`omnilidar.generator.diffusion.epsilon_loss` (windows, time, noise).
+    """
+    image, extra, index, eps = _draw(image, steps, generator, crop_width)
     t = index.double() / steps
     l_t, l_mid, l_end = (schedule.logsnr(x) for x in (t, t - 0.5 / steps, t - 1.0 / steps))
     a_t, s_t = alpha_sigma(l_t)
@@ -87,6 +107,29 @@ def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image:
         z_end = ddim_move(predict_x0(z_mid, teacher(z_mid, l_mid, domain, tokens, mask, **extra), l_mid),
                           z_mid, l_mid, l_end)
         target = two_step_target(z_t, z_end, l_t, l_end)
+    x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
+    weight = torch.clamp(torch.exp(l_t.double()), min=1.0).float()  # max(SNR, 1)
+    return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()
+
+
+def consistency_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
+                     tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, grid: int,
+                     generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
+    """Truncated-SNR weighted error between the student's x0 at t and its own x0 (no gradient) one
+    teacher DDIM step later on a ``grid``-step grid; at s = 0 the target is the teacher's landing.
+
+    Noise, times and azimuth windows come from ``generator`` in the order of
+    :func:`distillation_loss` (windows, time, noise)."""
+    image, extra, index, eps = _draw(image, grid, generator, crop_width)
+    t = index.double() / grid
+    l_t, l_s = schedule.logsnr(t), schedule.logsnr(t - 1.0 / grid)
+    a_t, s_t = alpha_sigma(l_t)
+    z_t = (_per_scan(a_t) * image.double() + _per_scan(s_t) * eps.double()).float()
+    l_t, l_s = l_t.float(), l_s.float()
+    with torch.no_grad():
+        z_s = ddim_move(predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra), l_t), z_t, l_t, l_s)
+        target = predict_x0(z_s, student(z_s, l_s, domain, tokens, mask, **extra).float(), l_s)
+        target = torch.where(_per_scan(index == 1), z_s.clamp(-1.0, 1.0), target)  # f(z, 0) = z
     x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
     weight = torch.clamp(torch.exp(l_t.double()), min=1.0).float()  # max(SNR, 1)
     return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()

@@ -41,7 +41,7 @@ from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
 from omnilidar.generator.diffusion import epsilon_loss
-from omnilidar.generator.distill import distillation_loss, round_steps, student_steps
+from omnilidar.generator.distill import consistency_loss, distillation_loss, round_steps, student_steps
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
@@ -119,6 +119,11 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             if self.teacher is None:
                 loss = epsilon_loss(self.denoiser, image, domain, tokens, mask, self.schedule, self.gamma, gen,
                                     crop_width=self.crop_width)
+                return {"loss": loss}
+            if settings["distillation"]["method"] == "consistency":  # the trained generator teaches throughout
+                loss = consistency_loss(self.denoiser, self.teacher, image, domain, tokens, mask, self.schedule,
+                                        int(settings["distillation"]["teacher_steps"]), gen,
+                                        crop_width=self.crop_width)
                 return {"loss": loss}
             round_index = self.iteration // settings["distillation"]["iterations_per_round"]
             if int(self.teacher_round) < round_index:  # a new round: the student becomes the teacher
@@ -371,7 +376,8 @@ def train_generator(
         **resumable_runner_args(resume_from, seed, tr["log_interval"]),
     )
     what = "generator" if dist is None else (
-        f"student of {teacher} ({dist['teacher_steps']} -> {student_steps(dist)} DDIM steps in {dist['rounds']} rounds)")
+        f"student of {teacher} ({dist['method']} distillation, {dist['teacher_steps']} -> {student_steps(dist)} "
+        f"DDIM steps, {dist['rounds']} x {dist['iterations_per_round']} iterations)")
     runner.logger.info(
         f"omnilidar {what}: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
         f"{len(dataset)} scans, strategy {tr['strategy']}, {iterations} iterations"
@@ -422,7 +428,8 @@ def train_generator(
         }
         if dist is not None:
             payload["student"] = {"sampler": "ddim", "steps": student_steps(dist), "teacher": str(teacher),
-                                  "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"])}
+                                  "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"]),
+                                  "method": dist["method"]}
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
     logging.getLogger("mmengine").info(f"wrote {out}")
