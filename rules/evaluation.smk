@@ -23,9 +23,10 @@ K360_SETS = generated_sets({
     "full": ("full", K360_DOMAIN, EVAL["sampler"], EVAL["steps"], EVAL["scans_per_set"]),
     "baseline": (f"baseline-{K360_DOMAIN}", K360_DOMAIN, EVAL["sampler"], EVAL["steps"], EVAL["scans_per_set"]),
 })
+# Every setting of the sampler study is sampled and timed alike (the generator's own included).
 TRADEOFF_SETS = generated_sets({f"{s}-{n}/{d}": ("full", d, s, n, EVAL["tradeoff"]["scans"])
                                 for s, steps in EVAL["tradeoff"]["samplers"].items() for n in steps
-                                for d in (EVAL["tradeoff"]["domains"] or GEN_DOMAINS)})
+                                for d in (EVAL["tradeoff"]["domains"] or GEN_DOMAINS)}, reuse=False)
 # The distilled student, sampled (DDIM in its own steps) beside the teacher's solvers.
 TRADEOFF_STUDENT = [f"{GENERATOR}/full/student.pt"] if EVAL["tradeoff"]["student"] else []
 if TRADEOFF_STUDENT:

@@ -16,18 +16,22 @@ def eval_checkpoint(model):
     return f"{GENERATOR}/{model}/model.pt"
 
 
-def eval_sample_shards(model, domain, sampler, steps, count):
-    """Shard folders holding the first ``count`` scans of one generated set."""
+def eval_sample_shards(model, domain, sampler, steps, count, reuse=True):
+    """Shard folders holding the first ``count`` scans of one generated set; with ``reuse`` the
+    generator's own samples where the setting is the generator's own sampler (their quality is the
+    same, their seconds per scan were timed in another job and batch, so a timing study does not
+    reuse them)."""
     shards = -(-int(count) // EVAL_SHARD)
     gen = config["generator"]["sampling"]
-    if model == "full" and (sampler, int(steps)) == (gen["sampler"], gen["steps"]) and count <= gen["scans_per_domain"]:
+    if (reuse and model == "full" and (sampler, int(steps)) == (gen["sampler"], gen["steps"])
+            and count <= gen["scans_per_domain"]):
         return sample_shards(domain)[:shards]
     return [f"{DATA}/eval_samples/{model}/{sampler}_{steps}/{domain}/shard_{k}" for k in range(shards)]
 
 
-def generated_sets(sets):
+def generated_sets(sets, reuse=True):
     """{key: shard folders} of several sets given as {key: (model, domain, sampler, steps, count)}."""
-    return {key: eval_sample_shards(*spec) for key, spec in sets.items()}
+    return {key: eval_sample_shards(*spec, reuse=reuse) for key, spec in sets.items()}
 
 
 def sets_args(sets):

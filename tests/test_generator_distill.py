@@ -19,7 +19,7 @@ from omnilidar.generator.text import build_prompt_cache, load_prompt_cache
 from omnilidar.generator.training import train_generator
 from test_generator_fixtures import TINY_DOMAINS, make_domains, one_torch_thread, tiny_settings  # noqa: F401
 from test_generator_training import FakeEncoder
-from workflow_helpers import copy_workflow, planned_jobs
+from workflow_helpers import copy_workflow, planned_jobs, snakemake
 
 DISTILL = {"teacher_steps": 4, "rounds": 2, "iterations_per_round": 2, "lr": 1e-3}
 
@@ -210,3 +210,17 @@ def test_a_decomposition_attempt_samples_the_student_without_retraining(tmp_path
                         str(tmp_path / "attempt.yaml"))
     assert jobs["distill_generator"] == jobs["train_generator"] == jobs["sample_attempt"] == 1
     assert "train_generator_attempt" not in jobs
+
+
+def test_the_sampler_study_samples_and_times_the_generator_s_own_sampler_like_every_setting(tmp_path):
+    """With the generator's own sampler in its grid, the study samples it in its own job (no reuse of
+    sample_domain's scans, which were timed in another batch and another run)."""
+    wf = copy_workflow(tmp_path)
+    (tmp_path / "study.yaml").write_text(
+        "generator: {sampling: {sampler: unipc, steps: 3}}\n"
+        "evaluation: {tradeoff: {samplers: {unipc: [3], ddim: [2]}, student: true, domains: [Vehicle]}}\n")
+    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", "--configfile", "config/test.yaml",
+                    str(tmp_path / "study.yaml")).stdout
+    study = out.split("rule sampler_tradeoff:", 1)[1].split("output:", 1)[0]
+    assert "data/eval_samples/full/unipc_3/Vehicle/shard_0" in study and "data/samples/" not in study
+    assert "--default-sampler unipc:3" in out.split("rule sampler_tradeoff:", 1)[1]
