@@ -152,7 +152,7 @@ def is_synthetic(name):
 
 def synthetic_shards(name):
     """Shard names (sequences, platforms or splits) the synthetic world writes for one dataset."""
-    from omnilidar.data.synthetic.export import shard_names
+    from omnilidar.data.synthetic.shards import shard_names
 
     return shard_names(name, config["synthetic"])
 

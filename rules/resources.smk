@@ -147,7 +147,7 @@ def _split_counts(dataset):
     except (OSError, ValueError):
         pass
     if is_synthetic(dataset):
-        from omnilidar.data.synthetic.export import planned_split_counts
+        from omnilidar.data.synthetic.shards import planned_split_counts
 
         return planned_split_counts(dataset, config["synthetic"])
     if not os.path.isdir(root):

@@ -273,7 +273,7 @@ def test_an_epoch_schedule_on_a_synthetic_world_not_made_yet_is_planned_from_its
     assert before != 10 * 60  # not the flat rates.downstream_hours
 
     from omnilidar.config import load_config
-    from omnilidar.data.synthetic.export import planned_split_counts
+    from omnilidar.data.synthetic.shards import planned_split_counts
 
     cfg = load_config(workdir / "config/config.yaml")
     planned = planned_split_counts("semantickitti", cfg["synthetic"])

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from omnilidar.cli import main
-from omnilidar.data.synthetic.export import NUSCENES_GENERAL, planned_split_counts, shard_names, to_nuscenes_general
+from omnilidar.data.synthetic.export import NUSCENES_GENERAL, to_nuscenes_general
+from omnilidar.data.synthetic.shards import planned_split_counts, shard_names
 from omnilidar.config import section_defaults
 from omnilidar.io import kitti360, nuscenes, pi3det, semantickitti
 from omnilidar.io.semantickitti import LEARNING_MAP

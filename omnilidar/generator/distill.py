@@ -41,9 +41,6 @@ from omnilidar.generator.diffusion import azimuth_windows
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, predict_x0
 
 
-METHODS = ("progressive", "consistency")
-
-
 def student_steps(distillation: dict) -> int:
     """DDIM steps of the finished student."""
     return int(distillation["teacher_steps"]) >> int(distillation["rounds"])

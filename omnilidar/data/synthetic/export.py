@@ -25,12 +25,11 @@ from tqdm import tqdm
 
 from omnilidar.data.synthetic import classes as C
 from omnilidar.data.synthetic.sequence import shard_entropy, simulate_sequence
+from omnilidar.data.synthetic.shards import DATASETS, SEMANTICKITTI_TEST, pi3det_val_scenes, shard_names
 from omnilidar.errors import InputError
 from omnilidar.io.atomic import atomic_path
 from omnilidar.lidar.scan import Boxes
 
-DATASETS = ("semantickitti", "kitti360", "pi3det", "nuscenes")
-SEMANTICKITTI_TEST = tuple(f"{i:02d}" for i in range(11, 22))
 
 # SemanticKITTI raw id -> nuScenes-lidarseg general class index (0..31).
 # nuScenes general classes used: 0 noise, 2 human.pedestrian.adult, 14 vehicle.bicycle,
@@ -53,54 +52,6 @@ for _raw, _nus in NUSCENES_GENERAL.items():
 def to_nuscenes_general(semantic: np.ndarray) -> np.ndarray:
     """Raw SemanticKITTI ids -> nuScenes-lidarseg general class ids (uint8); unknown -> 0 (noise)."""
     return _NUSC_LUT[np.asarray(semantic, dtype=np.uint16)]
-
-
-def shard_names(dataset: str, settings: dict) -> list[str]:
-    """Shard names configured for ``dataset`` (as the workflow names them)."""
-    spec = settings["datasets"][dataset]
-    if dataset == "semantickitti":
-        return [f"{int(s):02d}" for s in spec["sequences"]]
-    if dataset == "kitti360":
-        return [f"{int(s):04d}" for s in spec["sequences"]]
-    if dataset == "pi3det":
-        return list(spec["platforms"])
-    if dataset == "nuscenes":
-        return list(spec["splits"])
-    raise InputError(None, f"unknown synthetic dataset {dataset!r}; known: {', '.join(DATASETS)}")
-
-
-def _pi3det_val_scenes(spec: dict) -> int:
-    """Scenes of a Pi3DET platform that go to val (the last ones): val_fraction of them, at least one
-    where the fraction is positive and at least one scene is left for train."""
-    n_scenes = spec["scenes"]
-    n_val = int(round(spec["val_fraction"] * n_scenes))
-    if n_scenes > 1:
-        n_val = min(max(n_val, 1 if spec["val_fraction"] > 0 else 0), n_scenes - 1)
-    return n_val
-
-
-def planned_split_counts(dataset: str, settings: dict) -> dict[str, int]:
-    """{split: scans} the configured world will hold once written, keyed as its index names the
-    splits (omnilidar.data.index), so a workflow can plan from it before any scan exists."""
-    from omnilidar.io import kitti360, semantickitti
-
-    spec = settings["datasets"][dataset]
-    shards = set(shard_names(dataset, settings))
-    if dataset == "semantickitti":
-        per = {s: spec["scans_per_test_sequence"] if s in SEMANTICKITTI_TEST else spec["scans_per_sequence"]
-               for s in shards}
-        return {split: sum(per.get(seq, 0) for seq in seqs) for split, seqs in semantickitti.SPLITS.items()}
-    if dataset == "kitti360":
-        return {split: spec["scans_per_sequence"] * sum(f"{seq:04d}" in shards for seq in seqs)
-                for split, seqs in kitti360.SPLITS.items()}
-    if dataset == "pi3det":
-        counts = {}
-        for platform, p in spec["platforms"].items():
-            n_val = _pi3det_val_scenes(p)
-            counts[f"{platform}_train"] = (p["scenes"] - n_val) * p["scans_per_scene"]
-            counts[f"{platform}_val"] = n_val * p["scans_per_scene"]
-        return counts
-    return {split: s["scenes"] * s["scans_per_scene"] for split, s in spec["splits"].items()}
 
 
 def _progress(total: int, desc: str):
@@ -184,7 +135,7 @@ def _pi3det(shard: str, settings: dict, entropy, folder: Path) -> dict:
     (folder / "velodyne").mkdir()
     (folder / "labels").mkdir()
     n_scenes, per = spec["scenes"], spec["scans_per_scene"]
-    n_val = _pi3det_val_scenes(spec)
+    n_val = pi3det_val_scenes(spec)
     infos = {"train": [], "val": []}
     points = boxes = 0
     with _progress(n_scenes * per, f"pi3det {shard}") as bar:
