@@ -25,7 +25,7 @@ from real_samples import KITTI_SCANS, NUSCENES_SWEEP, real_files_or_exit  # noqa
 
 
 PROJECTION_COLUMNS = ["scan", "image", "valid pixels", "points surviving", "median / max relative range error"]
-RING_COLUMNS = ["scan", "points", "nominal angles", "per-scan calibration", "calibrated on the other KITTI scan"]
+RING_COLUMNS = ["scan", "subset", "nominal angles", "per-scan calibration", "calibrated on the other KITTI scan"]
 
 
 def projection_table() -> list[dict]:
@@ -65,10 +65,11 @@ def ring_table() -> list[dict]:
     print(f"{'scan':<34}{'subset':<22}{'nominal':>9}{'calibrated':>12}{'other scan':>12}")
     sensor = PRESETS["kitti_hdl64e"]
     rng = np.random.default_rng(0)
-    scans = [np.fromfile(path, np.float32).reshape(-1, 4) for path in real_files_or_exit(KITTI_SCANS)]
+    paths = real_files_or_exit(KITTI_SCANS)
+    scans = [np.fromfile(path, np.float32).reshape(-1, 4) for path in paths]
     calibrations = [calibrate_rings(pts, sensor) for pts in scans]
     rows = []
-    for k, (path, pts) in enumerate(zip(real_files_or_exit(KITTI_SCANS), scans)):
+    for k, (path, pts) in enumerate(zip(paths, scans)):
         ref = _firing_order_rings(pts)
         az = np.arctan2(pts[:, 1], pts[:, 0])
         perm = rng.permutation(len(pts))
