@@ -167,6 +167,14 @@ SYNTHETIC_SHARD_LAYOUT = {
 }
 
 
+def synthetic_shard_settings(name, shard_dir):
+    """The synthetic settings one shard is made from (the shared keys and its own dataset entry),
+    as one JSON string: a change to another dataset, platform or sequence leaves it as it is."""
+    from omnilidar.data.synthetic.shards import shard_settings
+
+    return json.dumps(shard_settings(config["synthetic"], name, synthetic_shard(name, shard_dir)), sort_keys=True)
+
+
 def synthetic_shard_dirs(name):
     layout, _ = SYNTHETIC_SHARD_LAYOUT[name]
     return [f"{DATA}/synthetic/{name}/{layout.format(shard=s)}" for s in synthetic_shards(name)]

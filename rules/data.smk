@@ -20,7 +20,7 @@ rule synthesize:
     params:
         dataset=lambda w: w.dataset,
         shard=lambda w: synthetic_shard(w.dataset, w.shard_dir),
-        settings=settings("synthetic"),
+        settings=lambda w: synthetic_shard_settings(w.dataset, w.shard_dir),
         seed=config["seed"],
         code=code("synthesize"),
     log:

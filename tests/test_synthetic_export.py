@@ -154,3 +154,47 @@ def test_planned_split_counts_are_what_the_written_world_indexes(tmp_path):
         planned = planned_split_counts(dataset, settings)
         assert {k: v for k, v in planned.items() if v} == {k: v for k, v in indexed.items() if v}, dataset
     assert planned_split_counts("pi3det", settings)["drone_val"] == 1
+
+
+def test_a_shard_is_written_from_its_own_settings_alone(tmp_path):
+    """The workflow hands each shard only the shared keys and its own dataset entry (shard_settings,
+    its provenance): the shard is the same bytes, and another dataset's, platform's or sequence's
+    settings do not enter it, while its own do."""
+    from omnilidar.data.synthetic.shards import shard_settings
+
+    own = shard_settings(TINY, "pi3det", "quadruped")
+    assert set(own["datasets"]) == {"pi3det"} and set(own["datasets"]["pi3det"]["platforms"]) == {"quadruped"}
+    full, narrowed = tmp_path / "full" / "quadruped", tmp_path / "narrowed" / "quadruped"
+    assert synth("pi3det", "quadruped", full) == 0 and synth("pi3det", "quadruped", narrowed, settings=own) == 0
+    assert (full / "velodyne" / "000000.bin").read_bytes() == (narrowed / "velodyne" / "000000.bin").read_bytes()
+    assert (full / "quadruped_infos_train.pkl").read_bytes() == (narrowed / "quadruped_infos_train.pkl").read_bytes()
+
+    other = json.loads(json.dumps(TINY))
+    other["datasets"]["pi3det"]["platforms"]["drone"]["scenes"] = 5
+    other["datasets"]["semantickitti"]["sequences"] = ["00", "05", "11"]
+    other["datasets"]["nuscenes"]["splits"]["val"]["scenes"] = 3
+    assert shard_settings(other, "pi3det", "quadruped") == own
+    assert shard_settings(other, "semantickitti", "00") == shard_settings(TINY, "semantickitti", "00")
+    assert shard_settings(other, "semantickitti", "00")["datasets"]["semantickitti"]["sequences"] == ["00"]
+    assert shard_settings(other, "nuscenes", "train") == shard_settings(TINY, "nuscenes", "train")
+    other["datasets"]["pi3det"]["platforms"]["quadruped"]["pedestrians_per_100m"] = 40.0
+    other["world"] = {**other["world"], "grid_m": 0.5}
+    assert shard_settings(other, "pi3det", "quadruped") != own
+    assert shard_settings(other, "pi3det", "drone") != shard_settings(TINY, "pi3det", "drone")  # the shared world
+
+
+def test_a_platform_s_own_crowd_density_replaces_the_world_s_in_its_scenes_only(tmp_path):
+    """pedestrians_per_100m of a Pi3DET platform: its scenes hold that crowd, whatever the world's."""
+    empty = json.loads(json.dumps(TINY))
+    empty["world"]["pedestrians_per_100m"] = 0.0
+    empty["datasets"]["pi3det"]["platforms"]["quadruped"].update(pedestrians_per_100m=None, scans_per_scene=2)
+    crowded = json.loads(json.dumps(empty))
+    crowded["datasets"]["pi3det"]["platforms"]["quadruped"]["pedestrians_per_100m"] = 60.0
+
+    def pedestrians(settings, name):
+        assert synth("pi3det", "quadruped", tmp_path / name / "quadruped", settings=settings) == 0
+        infos = pi3det.read_infos(tmp_path / name / "quadruped" / "quadruped_infos_train.pkl")
+        return sum(int((np.asarray(i["annos"]["gt_names"]) == "Pedestrian").sum()) for i in infos)
+
+    assert pedestrians(empty, "empty") == 0
+    assert pedestrians(crowded, "crowded") >= 4

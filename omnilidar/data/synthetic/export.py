@@ -136,6 +136,8 @@ def _pi3det(shard: str, settings: dict, entropy, folder: Path) -> dict:
     (folder / "labels").mkdir()
     n_scenes, per = spec["scenes"], spec["scans_per_scene"]
     n_val = pi3det_val_scenes(spec)
+    if spec.get("pedestrians_per_100m") is not None:  # the platform's own crowd density
+        settings = {**settings, "world": {**settings["world"], "pedestrians_per_100m": spec["pedestrians_per_100m"]}}
     infos = {"train": [], "val": []}
     points = boxes = 0
     with _progress(n_scenes * per, f"pi3det {shard}") as bar:

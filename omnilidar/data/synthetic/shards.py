@@ -26,6 +26,22 @@ def shard_names(dataset: str, settings: dict) -> list[str]:
     raise InputError(None, f"unknown synthetic dataset {dataset!r}; known: {', '.join(DATASETS)}")
 
 
+def shard_settings(settings: dict, dataset: str, shard: str) -> dict:
+    """The part of the synthetic section one shard is made from: every shared key (world,
+    radiometry, ...) and, of ``datasets``, only this shard's own entry (its sequence, Pi3DET
+    platform or nuScenes split). The workflow keys a shard's provenance on it, so a change to
+    another dataset, platform or sequence leaves this shard as it is."""
+    spec = dict(settings["datasets"][dataset])
+    if dataset in ("semantickitti", "kitti360"):
+        names = shard_names(dataset, settings)
+        spec["sequences"] = [s for s, name in zip(spec["sequences"], names) if name == shard]
+    elif dataset == "pi3det":
+        spec["platforms"] = {shard: spec["platforms"][shard]}
+    else:
+        spec["splits"] = {shard: spec["splits"][shard]}
+    return {**settings, "datasets": {dataset: spec}}
+
+
 def pi3det_val_scenes(spec: dict) -> int:
     """Scenes of a Pi3DET platform that go to val (the last ones): val_fraction of them, at least one
     where the fraction is positive and at least one scene is left for train."""
