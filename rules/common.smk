@@ -7,6 +7,7 @@ import sys
 from omnilidar.config import validate, workflow_file
 from omnilidar.data_source import describe as describe_sources, mixed as sources_mixed, record as data_source_record
 from omnilidar.errors import InputError
+from omnilidar.generator.distill_steps import distillation_iterations, student_steps
 from omnilidar.manifest import listing_digest
 from omnilidar.provenance import code_manifest, command_code_hash, command_modules, package_versions
 from omnilidar.rerun_reasons import record_code_manifest
@@ -267,7 +268,7 @@ def weights_args(weights):
 
 
 # DDIM steps of the distilled student (generator.distillation).
-STUDENT_STEPS = config["generator"]["distillation"]["teacher_steps"] >> config["generator"]["distillation"]["rounds"]
+STUDENT_STEPS = student_steps(config["generator"]["distillation"])
 
 
 def tradeoff_default_sampler():

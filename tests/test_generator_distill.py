@@ -12,7 +12,8 @@ import torch
 
 from omnilidar.errors import InputError
 from omnilidar.generator.checkpoint import load_generator
-from omnilidar.generator.distill import consistency_loss, ddim_move, distillation_loss, student_steps, two_step_target
+from omnilidar.generator.distill import compression_loss, consistency_loss, ddim_move, distillation_loss, two_step_target
+from omnilidar.generator.distill_steps import student_steps
 from omnilidar.generator.sampling import sample_shard, student_sampling
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
 from omnilidar.generator.text import build_prompt_cache, load_prompt_cache
@@ -145,6 +146,64 @@ def test_the_student_samples_every_domain_in_its_own_steps(teacher, tmp_path):
     assert not np.array_equal(images["Vehicle"], images["Fog"])
     with pytest.raises(InputError, match="not a distilled student"):
         student_sampling(asked, load_generator(root / "model.pt")[1], root / "model.pt")
+
+
+def test_compression_the_teacher_teaches_itself_and_a_wrong_student_pays_its_error():
+    c = torch.linspace(-0.5, 0.5, 2 * 4 * 8).reshape(1, 2, 4, 8)
+    args = (c.expand(3, -1, -1, -1).clone(), torch.zeros(3, dtype=torch.long), torch.zeros(3, 2, 5),
+            torch.ones(3, 2, dtype=torch.bool), CosineLogSNRSchedule(), 4)
+    assert float(compression_loss(PointMass(c), PointMass(c), *args, torch.Generator().manual_seed(1))) < 1e-6
+    wrong = compression_loss(PointMass(c + 0.1), PointMass(c), *args, torch.Generator().manual_seed(1))
+    assert float(wrong) >= 0.01 * (1 - 1e-3)
+
+
+@pytest.fixture(scope="module")
+def narrow_student(teacher, tmp_path_factory):
+    """A student half its trained generator's width: compression first, then the rounds."""
+    _, settings, index, prompts, _ = teacher
+    narrow = copy.deepcopy(settings)
+    narrow["model"]["base_channels"] = 2 * settings["model"]["base_channels"]
+    narrow["distillation"].update(student_channels=settings["model"]["base_channels"], compression_iterations=3)
+    work = tmp_path_factory.mktemp("narrow")
+    train_generator(narrow, index, prompts, work / "teacher_work", work / "model.pt", seed=3)
+    summary = train_generator(narrow, index, prompts, work / "work", work / "student.pt", seed=3,
+                              teacher=work / "model.pt")
+    return narrow, work, summary
+
+
+def test_a_narrower_student_learns_the_generator_first_then_the_rounds_and_samples(teacher, narrow_student, tmp_path):
+    _, settings, index, prompts, _ = teacher
+    narrow, work, summary = narrow_student
+    assert summary["iterations"] == 3 + 2 * 2
+    den, payload = load_generator(work / "student.pt")
+    assert payload["config"]["model"] == settings["model"]  # half the teacher's width
+    assert payload["config"]["model"] != narrow["model"] and payload["student"]["steps"] == 1
+    wide = sum(p.numel() for p in load_generator(work / "model.pt")[0].parameters())
+    assert sum(p.numel() for p in den.parameters()) < wide / 2
+    sampling = student_sampling(dict(settings["sampling"], student=True), payload, work / "student.pt")
+    stats = sample_shard(den, payload, load_prompt_cache(prompts), "Fog", 0, 2, sampling, 5, tmp_path / "Fog",
+                         log=lambda *_: None)
+    assert stats["generated"] == 2
+    # Without compression the narrow student starts the rounds from its random initial weights.
+    cold = copy.deepcopy(narrow)
+    cold["distillation"]["compression_iterations"] = 0
+    assert train_generator(cold, index, prompts, tmp_path / "cold", tmp_path / "cold.pt", seed=3,
+                           teacher=work / "model.pt")["iterations"] == 2 * 2
+    a, b = _state(work / "student.pt"), _state(tmp_path / "cold.pt")
+    assert not all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("until", [2, 4])  # inside compression, and inside the first round
+def test_an_interrupted_narrow_distillation_resumes_to_the_same_student(teacher, narrow_student, tmp_path, until):
+    _, _, index, prompts, _ = teacher
+    narrow, work, _ = narrow_student
+    train_generator(narrow, index, prompts, tmp_path / "work", tmp_path / "seg.json", seed=3, until=until,
+                    teacher=work / "model.pt")
+    resumed = train_generator(narrow, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                              teacher=work / "model.pt")
+    assert resumed["resumed_from"] == until
+    a, b = _state(work / "student.pt"), _state(tmp_path / "student.pt")
+    assert all(torch.equal(a[k], b[k]) for k in a)
 
 
 @pytest.mark.parametrize("until", [2, 3])  # a round boundary, and inside the second round

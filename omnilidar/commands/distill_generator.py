@@ -24,7 +24,7 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from omnilidar.config import validate
-    from omnilidar.generator.distill import student_steps
+    from omnilidar.generator.distill_steps import student_steps
     from omnilidar.generator.presets import apply_preset
     from omnilidar.generator.training import train_generator
 

@@ -41,16 +41,6 @@ from omnilidar.generator.diffusion import azimuth_windows
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, predict_x0
 
 
-def student_steps(distillation: dict) -> int:
-    """DDIM steps of the finished student."""
-    return int(distillation["teacher_steps"]) >> int(distillation["rounds"])
-
-
-def round_steps(distillation: dict, round_index: int) -> int:
-    """DDIM steps the student of round ``round_index`` (0-based) learns to sample in."""
-    return int(distillation["teacher_steps"]) >> (int(round_index) + 1)
-
-
 def _per_scan(v: torch.Tensor) -> torch.Tensor:
     return v[:, None, None, None]
 
@@ -105,6 +95,25 @@ def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image:
         z_end = ddim_move(predict_x0(z_mid, teacher(z_mid, l_mid, domain, tokens, mask, **extra), l_mid),
                           z_mid, l_mid, l_end)
         target = two_step_target(z_t, z_end, l_t, l_end)
+    x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
+    weight = torch.clamp(torch.exp(l_t.double()), min=1.0).float()  # max(SNR, 1)
+    return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()
+
+
+def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
+                     tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, grid: int,
+                     generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
+    """Truncated-SNR weighted error between the student's x0 and the teacher's at the times of a
+    ``grid``-step DDIM sampler: one step of the student lands where one of the teacher lands, so a
+    narrower student starts its rounds as a copy of the trained generator's sampler. Draws as
+    :func:`distillation_loss` does."""
+    image, extra, index, eps = _draw(image, grid, generator, crop_width)
+    l_t = schedule.logsnr(index.double() / grid)
+    a_t, s_t = alpha_sigma(l_t)
+    z_t = (_per_scan(a_t) * image.double() + _per_scan(s_t) * eps.double()).float()
+    l_t = l_t.float()
+    with torch.no_grad():
+        target = predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra).float(), l_t)
     x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
     weight = torch.clamp(torch.exp(l_t.double()), min=1.0).float()  # max(SNR, 1)
     return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()

@@ -27,6 +27,7 @@ Training noise (t and epsilon) comes from a generator seeded by
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import os
@@ -41,7 +42,9 @@ from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
 from omnilidar.generator.diffusion import epsilon_loss
-from omnilidar.generator.distill import consistency_loss, distillation_loss, round_steps, student_steps
+from omnilidar.generator.distill import compression_loss, consistency_loss, distillation_loss
+from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_steps, student_model,
+                                              student_steps)
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
@@ -80,10 +83,12 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
     """The mmengine adapter: ``loss`` mode is :func:`omnilidar.generator.diffusion.epsilon_loss`
     with noise drawn from a generator keyed by (seed, rank, iteration).
 
-    With a frozen ``teacher`` the loss is :func:`omnilidar.generator.distill.distillation_loss`
-    instead, round by round (``settings["distillation"]``): at each round's first step the teacher
-    takes the student's weights. The teacher and its round are part of the model's state, so a
-    checkpoint resumes with the teacher of its round."""
+    With a frozen ``teacher`` (the trained generator) the loss is distillation's instead
+    (``settings["distillation"]``, :mod:`omnilidar.generator.distill`): a student of another width
+    first learns the teacher's denoiser (compression), then the rounds; round 0's teacher is the
+    trained generator, every later round's a frozen copy of the student as the previous round
+    left it. That copy and its round are part of the model's state, so a checkpoint resumes with
+    the teacher of its round."""
     from mmengine.dist import get_rank
     from mmengine.model import BaseModel
 
@@ -102,12 +107,15 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             self.teacher = teacher
             if teacher is not None:
                 teacher.requires_grad_(False)
+                self.round_teacher = copy.deepcopy(denoiser).requires_grad_(False)
                 self.register_buffer("teacher_round", torch.zeros((), dtype=torch.long))
+                self.compression = compression_iterations(settings)
 
         def train(self, mode: bool = True):
             super().train(mode)
             if self.teacher is not None:
                 self.teacher.eval()
+                self.round_teacher.eval()
             return self
 
         def forward(self, image=None, domain=None, prompt=None, mode: str = "loss"):
@@ -120,18 +128,22 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                 loss = epsilon_loss(self.denoiser, image, domain, tokens, mask, self.schedule, self.gamma, gen,
                                     crop_width=self.crop_width)
                 return {"loss": loss}
-            if settings["distillation"]["method"] == "consistency":  # the trained generator teaches throughout
-                loss = consistency_loss(self.denoiser, self.teacher, image, domain, tokens, mask, self.schedule,
-                                        int(settings["distillation"]["teacher_steps"]), gen,
+            dist = settings["distillation"]
+            args = (image, domain, tokens, mask, self.schedule)
+            if self.iteration < self.compression:  # a narrower student learns the trained generator first
+                loss = compression_loss(self.denoiser, self.teacher, *args, int(dist["teacher_steps"]), gen,
                                         crop_width=self.crop_width)
                 return {"loss": loss}
-            round_index = self.iteration // settings["distillation"]["iterations_per_round"]
+            if dist["method"] == "consistency":  # the trained generator teaches throughout
+                loss = consistency_loss(self.denoiser, self.teacher, *args, int(dist["teacher_steps"]), gen,
+                                        crop_width=self.crop_width)
+                return {"loss": loss}
+            round_index = (self.iteration - self.compression) // dist["iterations_per_round"]
             if int(self.teacher_round) < round_index:  # a new round: the student becomes the teacher
-                self.teacher.load_state_dict(self.denoiser.state_dict())
+                self.round_teacher.load_state_dict(self.denoiser.state_dict())
                 self.teacher_round.fill_(round_index)
-            loss = distillation_loss(self.denoiser, self.teacher, image, domain, tokens, mask, self.schedule,
-                                     round_steps(settings["distillation"], round_index), gen,
-                                     crop_width=self.crop_width)
+            loss = distillation_loss(self.denoiser, self.round_teacher if round_index else self.teacher, *args,
+                                     round_steps(dist, round_index), gen, crop_width=self.crop_width)
             return {"loss": loss}
 
     return DiffusionModel()
@@ -268,9 +280,11 @@ def train_generator(
     """Train (or resume) the generator and write the final EMA weights + config to ``out``.
 
     ``teacher``: a trained generator checkpoint to distill instead (``settings["distillation"]``,
-    :mod:`omnilidar.generator.distill`): the student starts from its weights, trains
+    :mod:`omnilidar.generator.distill`): the student starts from its weights (or, at another
+    ``student_channels``, from scratch with ``compression_iterations`` first), trains
     ``rounds x iterations_per_round`` steps at the distillation learning rate, without EMA, and
-    ``out`` records the DDIM steps it samples in (``payload["student"]``).
+    ``out`` records the DDIM steps it samples in (``payload["student"]``) and the student's own
+    model settings.
 
     ``until``: one segment of a chain (see ``rules/generator.smk``): train only up to that
     iteration, leave the resumable state (checkpoint at ``until``) in ``work_dir`` and write a
@@ -287,7 +301,7 @@ def train_generator(
 
     tr = settings["training"]
     dist = settings["distillation"] if teacher is not None else None
-    iterations = tr["iterations"] if dist is None else dist["rounds"] * dist["iterations_per_round"]
+    iterations = tr["iterations"] if dist is None else distillation_iterations(settings)
     if until is not None and not 0 < until < iterations:
         raise InputError(None, f"--until {until} must lie between 0 and the {iterations} iterations to train")
     stop = until or iterations
@@ -324,13 +338,16 @@ def train_generator(
 
     # Weight init from an explicit seed without touching the global RNG state.
     init_seed = int(rng_for(seed, 0x1D17).integers(2**63 - 1))
+    # A student's own settings: the trained generator's, at the student's width.
+    own = settings if dist is None else {**settings, "model": student_model(settings)}
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(init_seed)
-        denoiser = build_denoiser(settings, cache["dim"], len(names))
+        denoiser = build_denoiser(own, cache["dim"], len(names))
     frozen = None
     if dist is not None:
         frozen = teacher_weights(teacher, settings, names, cache)
-        denoiser.load_state_dict(frozen.state_dict())
+        if own["model"] == settings["model"]:
+            denoiser.load_state_dict(frozen.state_dict())
     model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen)
 
     cuda = torch.cuda.is_available()
@@ -367,7 +384,7 @@ def train_generator(
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
         default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
-        custom_hooks=[*([ema_hook(tr)] if dist is None else []), *make_hooks(settings, names, seed, provenance, training_cost)],
+        custom_hooks=[*([ema_hook(tr)] if dist is None else []), *make_hooks(own, names, seed, provenance, training_cost)],
         launcher=launcher,
         # A CPU module takes no device_ids (mmengine's default passes LOCAL_RANK).
         cfg=None if cuda or world == 1 else dict(model_wrapper_cfg=dict(
@@ -377,7 +394,9 @@ def train_generator(
     )
     what = "generator" if dist is None else (
         f"student of {teacher} ({dist['method']} distillation, {dist['teacher_steps']} -> {student_steps(dist)} "
-        f"DDIM steps, {dist['rounds']} x {dist['iterations_per_round']} iterations)")
+        f"DDIM steps, {dist['rounds']} x {dist['iterations_per_round']} iterations"
+        + (f" after {compression_iterations(settings)} of compression to base_channels "
+           f"{own['model']['base_channels']})" if compression_iterations(settings) else ")"))
     runner.logger.info(
         f"omnilidar {what}: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
         f"{len(dataset)} scans, strategy {tr['strategy']}, {iterations} iterations"
@@ -415,7 +434,7 @@ def train_generator(
         payload = {
             "format": CHECKPOINT_FORMAT,
             "state_dict": state,
-            "config": settings,
+            "config": own,
             "domains": names,
             # Per-domain image geometry (sensor field of view, pitch, range limits)
             # from the domains index, for back-projecting samples.

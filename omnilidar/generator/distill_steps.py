@@ -1,0 +1,34 @@
+"""How long a distillation runs and how many steps its student samples in, from the settings alone
+(no torch), so the workflow can plan and size the job before it runs
+(:mod:`omnilidar.generator.distill` trains it)."""
+
+from __future__ import annotations
+
+
+def student_model(settings: dict) -> dict:
+    """The student's model settings: the trained generator's, at ``distillation.student_channels``
+    when that is set."""
+    channels = settings["distillation"].get("student_channels")
+    return settings["model"] if channels is None else {**settings["model"], "base_channels": int(channels)}
+
+
+def compression_iterations(settings: dict) -> int:
+    """Steps in which a student of another width learns the trained generator's denoiser first."""
+    narrow = student_model(settings) != settings["model"]
+    return int(settings["distillation"]["compression_iterations"]) if narrow else 0
+
+
+def distillation_iterations(settings: dict) -> int:
+    """Optimizer steps of the whole distillation (compression, then the rounds)."""
+    d = settings["distillation"]
+    return compression_iterations(settings) + int(d["rounds"]) * int(d["iterations_per_round"])
+
+
+def student_steps(distillation: dict) -> int:
+    """DDIM steps of the finished student."""
+    return int(distillation["teacher_steps"]) >> int(distillation["rounds"])
+
+
+def round_steps(distillation: dict, round_index: int) -> int:
+    """DDIM steps the student of round ``round_index`` (0-based) learns to sample in."""
+    return int(distillation["teacher_steps"]) >> (int(round_index) + 1)
