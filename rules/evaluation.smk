@@ -242,7 +242,7 @@ rule sampler_tradeoff:
         prompts=rules.encode_prompts.output,
         checkpoint=f"{GENERATOR}/full/model.pt",
         effects="results/effects_tradeoff.json",
-        curve="results/gda_curve.json",
+        curve=["results/gda_curve.json"] if config["evaluation"]["tradeoff"]["downstream"] else [],
         weights=list(TRADEOFF_WEIGHTS.values()),
         samples=[d for dirs in TRADEOFF_SETS.values() for d in dirs],
         student=TRADEOFF_STUDENT,
@@ -254,6 +254,7 @@ rule sampler_tradeoff:
         settings=eval_settings("tradeoff"),
         seed=config["seed"],
         student=" ".join(f"--student {p}" for p in TRADEOFF_STUDENT) + tradeoff_default_sampler(),
+        curve=lambda w, input: f"--gda-curve {input.curve}" if input.curve else "",
         weights=weights_args(TRADEOFF_WEIGHTS),
         samples=sets_args(TRADEOFF_SETS),
         data_source=data_source(),
@@ -270,7 +271,7 @@ rule sampler_tradeoff:
         with_table(
             "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
             "--checkpoint {input.checkpoint} {params.student} {params.weights} {params.samples} --effects {input.effects} "
-            "--gda-curve {input.curve} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
+            "{params.curve} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
             "--out {output.json} --figure {output.figure} > {log} 2>&1"
         )
 

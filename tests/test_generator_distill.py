@@ -283,3 +283,17 @@ def test_the_sampler_study_samples_and_times_the_generator_s_own_sampler_like_ev
     study = out.split("rule sampler_tradeoff:", 1)[1].split("output:", 1)[0]
     assert "data/eval_samples/full/unipc_3/Vehicle/shard_0" in study and "data/samples/" not in study
     assert "--default-sampler unipc:3" in out.split("rule sampler_tradeoff:", 1)[1]
+
+
+def test_the_student_check_trains_no_segmentor_and_the_full_study_keeps_its_curve(tmp_path):
+    """config/student.yaml turns the study's downstream curve off: the student against its teacher
+    needs no labeler, pseudo-labels or students; the default study still plans and reads the curve."""
+    wf = copy_workflow(tmp_path)
+    check = planned_jobs(wf, "results/tradeoff.json", "--configfile", "config/test.yaml", "config/student.yaml")
+    assert check["distill_generator"] == 1 and check["sampler_tradeoff"] == 1
+    assert not {"train_labeler", "gda_curve", "train_gda_curve", "pseudo_label"} & set(check), check
+    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", "--configfile", "config/test.yaml",
+                    "config/student.yaml").stdout
+    assert "--gda-curve" not in out.split("rule sampler_tradeoff:", 1)[1]
+    full = planned_jobs(wf, "results/tradeoff.json", "--configfile", "config/test.yaml")
+    assert full["gda_curve"] == 1 and full["train_labeler"] == 1
