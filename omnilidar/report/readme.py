@@ -315,7 +315,8 @@ def benchmark(doc: dict) -> str:
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
              "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
              "student_check": student_check, "student_1step_progressive": student_check,
-             "student_1step_consistency": student_check, "sampler_quickstart": sampler_points, "pi3det_summary": pi3det_summary,
+             "student_1step_consistency": student_check, "student_narrow_2step": student_check,
+             "sampler_quickstart": sampler_points, "pi3det_summary": pi3det_summary,
              "run_cost_detection": run_cost, "domain_fidelity": domain_fidelity,
              "effects_tradeoff": effects_tradeoff,
              "sampler_grid": sampler_grid}
