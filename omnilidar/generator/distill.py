@@ -76,6 +76,20 @@ def _draw(image: torch.Tensor, steps: int, generator: torch.Generator, crop_widt
     return image, extra, index, eps
 
 
+def _noised(image: torch.Tensor, eps: torch.Tensor, logsnr: torch.Tensor) -> torch.Tensor:
+    """z_t = alpha_t x0 + sigma_t eps (per scan, in double precision)."""
+    a_t, s_t = alpha_sigma(logsnr)
+    return (_per_scan(a_t) * image.double() + _per_scan(s_t) * eps.double()).float()
+
+
+def _weighted_x0_error(student_out: torch.Tensor, z_t: torch.Tensor, logsnr: torch.Tensor,
+                       target: torch.Tensor) -> torch.Tensor:
+    """The student's x0 (unclamped) against ``target``, weighted by max(SNR, 1) ("truncated SNR")."""
+    x0 = predict_x0(z_t, student_out.float(), logsnr, clamp=False)
+    weight = torch.clamp(torch.exp(logsnr.double()), min=1.0).float()
+    return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()
+
+
 def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                       tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
                       generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
@@ -87,17 +101,14 @@ def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image:
     image, extra, index, eps = _draw(image, steps, generator, crop_width)
     t = index.double() / steps
     l_t, l_mid, l_end = (schedule.logsnr(x) for x in (t, t - 0.5 / steps, t - 1.0 / steps))
-    a_t, s_t = alpha_sigma(l_t)
-    z_t = (_per_scan(a_t) * image.double() + _per_scan(s_t) * eps.double()).float()
+    z_t = _noised(image, eps, l_t)
     l_t, l_mid, l_end = l_t.float(), l_mid.float(), l_end.float()
     with torch.no_grad():
         z_mid = ddim_move(predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra), l_t), z_t, l_t, l_mid)
         z_end = ddim_move(predict_x0(z_mid, teacher(z_mid, l_mid, domain, tokens, mask, **extra), l_mid),
                           z_mid, l_mid, l_end)
         target = two_step_target(z_t, z_end, l_t, l_end)
-    x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
-    weight = torch.clamp(torch.exp(l_t.double()), min=1.0).float()  # max(SNR, 1)
-    return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()
+    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target)
 
 
 def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
@@ -109,14 +120,11 @@ def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: 
     :func:`distillation_loss` does."""
     image, extra, index, eps = _draw(image, grid, generator, crop_width)
     l_t = schedule.logsnr(index.double() / grid)
-    a_t, s_t = alpha_sigma(l_t)
-    z_t = (_per_scan(a_t) * image.double() + _per_scan(s_t) * eps.double()).float()
+    z_t = _noised(image, eps, l_t)
     l_t = l_t.float()
     with torch.no_grad():
         target = predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra).float(), l_t)
-    x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
-    weight = torch.clamp(torch.exp(l_t.double()), min=1.0).float()  # max(SNR, 1)
-    return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()
+    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target)
 
 
 def consistency_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
@@ -130,13 +138,10 @@ def consistency_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: 
     image, extra, index, eps = _draw(image, grid, generator, crop_width)
     t = index.double() / grid
     l_t, l_s = schedule.logsnr(t), schedule.logsnr(t - 1.0 / grid)
-    a_t, s_t = alpha_sigma(l_t)
-    z_t = (_per_scan(a_t) * image.double() + _per_scan(s_t) * eps.double()).float()
+    z_t = _noised(image, eps, l_t)
     l_t, l_s = l_t.float(), l_s.float()
     with torch.no_grad():
         z_s = ddim_move(predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra), l_t), z_t, l_t, l_s)
         target = predict_x0(z_s, student(z_s, l_s, domain, tokens, mask, **extra).float(), l_s)
         target = torch.where(_per_scan(index == 1), z_s.clamp(-1.0, 1.0), target)  # f(z, 0) = z
-    x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
-    weight = torch.clamp(torch.exp(l_t.double()), min=1.0).float()  # max(SNR, 1)
-    return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()
+    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target)
