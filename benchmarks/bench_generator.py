@@ -196,12 +196,12 @@ def bench_student(args) -> tuple[list, dict]:
         raise SystemExit(f"{args.student}: not a distilled student")
     teacher, teacher_payload = load_generator(payload["student"]["teacher"], device=device)
     cache = load_prompt_cache(args.prompts)
-    print(f"student {args.student} ({payload['student']['steps']} DDIM steps) and teacher "
+    print(f"student {args.student} ({payload['student']['steps']} steps of {payload['student']['sampler']}) and teacher "
           f"{payload['student']['teacher']}, device {device}, threads {torch.get_num_threads()}")
     rows = [(f"teacher {spec}", _time_sampling(teacher, teacher_payload, cache, spec.split(":")[0],
                                                 int(spec.split(":")[1]), args, device)) for spec in args.samplers]
-    steps = int(payload["student"]["steps"])
-    rows.append((f"student ddim:{steps}", _time_sampling(student, payload, cache, "ddim", steps, args, device)))
+    steps, solver = int(payload["student"]["steps"]), payload["student"]["sampler"]
+    rows.append((f"student {solver}:{steps}", _time_sampling(student, payload, cache, solver, steps, args, device)))
     for name, per_scan in rows:
         print(f"{name:>28}: median {per_scan:.3f} s/scan, {rows[0][1] / per_scan:.1f}x faster than {rows[0][0]}")
     return ([{"what": f"{name} ({device}, {torch.get_num_threads()} threads)",

@@ -12,8 +12,10 @@ import torch
 
 from omnilidar.errors import InputError
 from omnilidar.generator.checkpoint import load_generator
-from omnilidar.generator.distill import compression_loss, consistency_loss, ddim_move, distillation_loss, two_step_target
+from omnilidar.generator.distill import (_grid_logsnr, compression_loss, consistency_loss, ddim_move, distillation_loss,
+                                        two_step_target)
 from omnilidar.generator.distill_steps import student_steps
+from omnilidar.generator.samplers import SPACINGS, make_scheduler, time_grid
 from omnilidar.generator.sampling import sample_shard, student_sampling
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
 from omnilidar.generator.text import build_prompt_cache, load_prompt_cache
@@ -73,17 +75,38 @@ class PointMass(torch.nn.Module):
         return ((z.double() - a[:, None, None, None] * c) / s[:, None, None, None]).float()
 
 
+@pytest.mark.parametrize("spacing", SPACINGS)
 @pytest.mark.parametrize("crop_width", [None, 4])
-def test_the_exact_teacher_teaches_itself_and_a_wrong_student_pays_its_error(crop_width):
+def test_the_exact_teacher_teaches_itself_and_a_wrong_student_pays_its_error(crop_width, spacing):
     c = torch.linspace(-0.5, 0.5, 2 * 4 * 8).reshape(1, 2, 4, 8)
     image = c.expand(3, -1, -1, -1).clone()
     args = (image, torch.zeros(3, dtype=torch.long), torch.zeros(3, 2, 5), torch.ones(3, 2, dtype=torch.bool),
             CosineLogSNRSchedule(), 2)
     exact = PointMass(c)
-    loss = distillation_loss(exact, exact, *args, torch.Generator().manual_seed(1), crop_width=crop_width)
+    loss = distillation_loss(exact, exact, *args, torch.Generator().manual_seed(1), crop_width=crop_width,
+                             spacing=spacing)
     assert float(loss) < 1e-6
-    wrong = distillation_loss(PointMass(c + 0.1), exact, *args, torch.Generator().manual_seed(1), crop_width=crop_width)
+    wrong = distillation_loss(PointMass(c + 0.1), exact, *args, torch.Generator().manual_seed(1), crop_width=crop_width,
+                              spacing=spacing)
     assert float(wrong) >= 0.01 * (1 - 1e-3)  # x0 off by 0.1 everywhere, weight max(SNR, 1) >= 1
+
+
+@pytest.mark.parametrize("spacing", SPACINGS)
+def test_the_student_trains_on_the_grid_its_ddim_sampler_walks(spacing):
+    """Step k of an n-step student starts and ends where the n-step DDIM sampler of that spacing
+    does, and its midpoint is the 2n-step grid's: what a round teaches is what sampling walks."""
+    schedule, n = CosineLogSNRSchedule(), 4
+    index = torch.arange(n, 0, -1)  # the sampler's order: from noise (index n) to data (index 1)
+    start, mid, end = _grid_logsnr(schedule, n, spacing, index, (0, 1, 2))
+    sampler = make_scheduler("ddim" if spacing == "uniform" else f"ddim_{spacing}", schedule)
+    sampler.set_timesteps(n)
+    walked = schedule.logsnr(time_grid(schedule, n, spacing))
+    torch.testing.assert_close(start, walked[:-1])
+    torch.testing.assert_close(end, walked[1:])
+    torch.testing.assert_close(mid, schedule.logsnr(time_grid(schedule, 2 * n, spacing))[1::2])
+    torch.testing.assert_close(sampler._logsnr, walked)
+    if spacing != "uniform":  # another grid than uniform in t: the four steps' starts differ from it
+        assert not torch.allclose(start, _grid_logsnr(schedule, n, "uniform", index, (0,))[0])
 
 
 @pytest.mark.parametrize("crop_width", [None, 4])
@@ -98,6 +121,23 @@ def test_consistency_the_exact_denoiser_is_consistent_and_the_boundary_pins_a_wr
     assert float(consistency_loss(exact, exact, *args, 4, torch.Generator().manual_seed(1), crop_width=crop_width)) < 1e-5
     wrong = consistency_loss(PointMass(c + 0.1), exact, *args, 1, torch.Generator().manual_seed(1), crop_width=crop_width)
     assert float(wrong) >= 0.01 * 0.9  # every draw is at the boundary on a one-step grid
+
+
+def test_a_student_distilled_on_another_spacing_samples_with_ddim_on_it(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    other = copy.deepcopy(settings)
+    other["distillation"]["spacing"] = "logsnr"
+    train_generator(other, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                    teacher=root / "model.pt")
+    den, payload = load_generator(tmp_path / "student.pt")
+    assert payload["student"]["sampler"] == "ddim_logsnr"
+    uniform, logsnr = _state(root / "student.pt"), _state(tmp_path / "student.pt")
+    assert not all(torch.equal(uniform[k], logsnr[k]) for k in uniform)
+    sampling = student_sampling(dict(settings["sampling"], student=True), payload, tmp_path / "student.pt")
+    assert (sampling["sampler"], sampling["steps"]) == ("ddim_logsnr", 1)
+    stats = sample_shard(den, payload, load_prompt_cache(prompts), "Fog", 0, 2, sampling, 5, tmp_path / "Fog",
+                         log=lambda *_: None)
+    assert stats["generated"] == 2
 
 
 def test_a_tiny_consistency_distillation_writes_its_student(teacher, tmp_path):

@@ -2,8 +2,10 @@
 Ho, 2022; ``distillation.method: progressive``, the default) or consistency distillation (Song et
 al., 2023; ``consistency``), at the same budget of optimizer steps and sampled alike.
 
-Each round halves the number of deterministic DDIM steps (uniform in t): the student learns to
-cover in one step what the round's teacher covers in two. Round 0's teacher is the trained
+Each round halves the number of deterministic DDIM steps: the student learns to cover in one step
+what the round's teacher covers in two. The steps lie on a grid uniform in t (the default), in
+logSNR or Karras' sigma spacing (``distillation.spacing``, the samplers' ``time_grid``); the
+student samples with DDIM on the same spacing. Round 0's teacher is the trained
 generator sampling in ``teacher_steps``; every later round's teacher is the student as the
 previous round left it. After ``rounds`` rounds the student samples in
 ``teacher_steps / 2**rounds`` DDIM steps with the same conditioning (prompt tokens and domain).
@@ -38,6 +40,7 @@ from __future__ import annotations
 import torch
 
 from omnilidar.generator.diffusion import azimuth_windows
+from omnilidar.generator.samplers import time_grid
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, predict_x0
 
 
@@ -76,6 +79,19 @@ def _draw(image: torch.Tensor, steps: int, generator: torch.Generator, crop_widt
     return image, extra, index, eps
 
 
+def _grid_logsnr(schedule: CosineLogSNRSchedule, steps: int, spacing: str, index: torch.Tensor,
+                 halves: tuple[int, ...]) -> list[torch.Tensor]:
+    """logSNR at step ``index`` (1..steps, counted from the data end) of a ``steps``-step DDIM grid of
+    ``spacing`` (:func:`omnilidar.generator.samplers.time_grid`), moved on by each of ``halves`` half
+    steps towards the data: (0,) is the step's start, (0, 1, 2) its start, midpoint and end."""
+    if spacing == "uniform":  # t = index / steps, in closed form
+        t = index.double() / steps
+        return [schedule.logsnr(t - h * 0.5 / steps) for h in halves]
+    grid = time_grid(schedule, 2 * steps, spacing).to(index.device)
+    start = 2 * (steps - index)
+    return [schedule.logsnr(grid[start + h]) for h in halves]
+
+
 def _noised(image: torch.Tensor, eps: torch.Tensor, logsnr: torch.Tensor) -> torch.Tensor:
     """z_t = alpha_t x0 + sigma_t eps (per scan, in double precision)."""
     a_t, s_t = alpha_sigma(logsnr)
@@ -92,15 +108,15 @@ def _weighted_x0_error(student_out: torch.Tensor, z_t: torch.Tensor, logsnr: tor
 
 def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                       tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
-                      generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
+                      generator: torch.Generator, crop_width: int | None = None,
+                      spacing: str = "uniform") -> torch.Tensor:
     """Truncated-SNR weighted x0 error of the ``steps``-step student against two teacher steps.
 
     Noise, times and azimuth windows come from ``generator`` in the order of
     :func:`omnilidar.generator.diffusion.epsilon_loss` (windows, time, noise).
     """
     image, extra, index, eps = _draw(image, steps, generator, crop_width)
-    t = index.double() / steps
-    l_t, l_mid, l_end = (schedule.logsnr(x) for x in (t, t - 0.5 / steps, t - 1.0 / steps))
+    l_t, l_mid, l_end = _grid_logsnr(schedule, steps, spacing, index, (0, 1, 2))
     z_t = _noised(image, eps, l_t)
     l_t, l_mid, l_end = l_t.float(), l_mid.float(), l_end.float()
     with torch.no_grad():
@@ -113,13 +129,14 @@ def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image:
 
 def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, grid: int,
-                     generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
+                     generator: torch.Generator, crop_width: int | None = None,
+                     spacing: str = "uniform") -> torch.Tensor:
     """Truncated-SNR weighted error between the student's x0 and the teacher's at the times of a
     ``grid``-step DDIM sampler: one step of the student lands where one of the teacher lands, so a
     narrower student starts its rounds as a copy of the trained generator's sampler. Draws as
     :func:`distillation_loss` does."""
     image, extra, index, eps = _draw(image, grid, generator, crop_width)
-    l_t = schedule.logsnr(index.double() / grid)
+    (l_t,) = _grid_logsnr(schedule, grid, spacing, index, (0,))
     z_t = _noised(image, eps, l_t)
     l_t = l_t.float()
     with torch.no_grad():
@@ -129,15 +146,15 @@ def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: 
 
 def consistency_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, grid: int,
-                     generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
+                     generator: torch.Generator, crop_width: int | None = None,
+                     spacing: str = "uniform") -> torch.Tensor:
     """Truncated-SNR weighted error between the student's x0 at t and its own x0 (no gradient) one
     teacher DDIM step later on a ``grid``-step grid; at s = 0 the target is the teacher's landing.
 
     Noise, times and azimuth windows come from ``generator`` in the order of
     :func:`distillation_loss` (windows, time, noise)."""
     image, extra, index, eps = _draw(image, grid, generator, crop_width)
-    t = index.double() / grid
-    l_t, l_s = schedule.logsnr(t), schedule.logsnr(t - 1.0 / grid)
+    l_t, l_s = _grid_logsnr(schedule, grid, spacing, index, (0, 2))
     z_t = _noised(image, eps, l_t)
     l_t, l_s = l_t.float(), l_s.float()
     with torch.no_grad():

@@ -29,6 +29,12 @@ def student_steps(distillation: dict) -> int:
     return int(distillation["teacher_steps"]) >> int(distillation["rounds"])
 
 
+def student_sampler(distillation: dict) -> str:
+    """The sampler name of the finished student: DDIM on the spacing it was distilled on."""
+    spacing = distillation["spacing"]
+    return "ddim" if spacing == "uniform" else f"ddim_{spacing}"
+
+
 def round_steps(distillation: dict, round_index: int) -> int:
     """DDIM steps the student of round ``round_index`` (0-based) learns to sample in."""
     return int(distillation["teacher_steps"]) >> (int(round_index) + 1)

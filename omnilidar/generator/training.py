@@ -44,7 +44,7 @@ from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
 from omnilidar.generator.diffusion import epsilon_loss
 from omnilidar.generator.distill import compression_loss, consistency_loss, distillation_loss
 from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_steps, student_model,
-                                              student_steps)
+                                               student_sampler, student_steps)
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
@@ -132,18 +132,19 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             args = (image, domain, tokens, mask, self.schedule)
             if self.iteration < self.compression:  # a narrower student learns the trained generator first
                 loss = compression_loss(self.denoiser, self.teacher, *args, int(dist["teacher_steps"]), gen,
-                                        crop_width=self.crop_width)
+                                        crop_width=self.crop_width, spacing=dist["spacing"])
                 return {"loss": loss}
             if dist["method"] == "consistency":  # the trained generator teaches throughout
                 loss = consistency_loss(self.denoiser, self.teacher, *args, int(dist["teacher_steps"]), gen,
-                                        crop_width=self.crop_width)
+                                        crop_width=self.crop_width, spacing=dist["spacing"])
                 return {"loss": loss}
             round_index = (self.iteration - self.compression) // dist["iterations_per_round"]
             if int(self.teacher_round) < round_index:  # a new round: the student becomes the teacher
                 self.round_teacher.load_state_dict(self.denoiser.state_dict())
                 self.teacher_round.fill_(round_index)
             loss = distillation_loss(self.denoiser, self.round_teacher if round_index else self.teacher, *args,
-                                     round_steps(dist, round_index), gen, crop_width=self.crop_width)
+                                     round_steps(dist, round_index), gen, crop_width=self.crop_width,
+                                     spacing=dist["spacing"])
             return {"loss": loss}
 
     return DiffusionModel()
@@ -446,7 +447,7 @@ def train_generator(
             **{k: v for k, v in summary.items() if k != "work_dir"},
         }
         if dist is not None:
-            payload["student"] = {"sampler": "ddim", "steps": student_steps(dist), "teacher": str(teacher),
+            payload["student"] = {"sampler": student_sampler(dist), "steps": student_steps(dist), "teacher": str(teacher),
                                   "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"]),
                                   "method": dist["method"]}
         with atomic_path(out) as tmp:
