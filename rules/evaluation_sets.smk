@@ -48,8 +48,9 @@ def table_sets(models, domains):
 
 def eval_sampling_settings(sampler, steps):
     """The generator section as `omnilidar sample` reads it, with the evaluation's sampler,
-    steps, batch and device."""
-    gen = json.loads(settings("generator"))
+    steps, batch and device. Like sample_domain's, without the distillation settings: a student's
+    sets change with its checkpoint (an input), a teacher's do not change with them at all."""
+    gen = json.loads(settings("generator", drop=("distillation",)))
     ev = config["evaluation"]
     gen["sampling"].update(sampler=sampler, steps=int(steps), batch_size=ev["batch_size"], device=ev["device"],
                            student=False)

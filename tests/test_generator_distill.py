@@ -325,6 +325,28 @@ def test_the_sampler_study_samples_and_times_the_generator_s_own_sampler_like_ev
     assert "--default-sampler unipc:3" in out.split("rule sampler_tradeoff:", 1)[1]
 
 
+def test_the_teacher_s_evaluation_sets_do_not_read_the_distillation_settings(tmp_path):
+    """Changing how the student is distilled reruns the student's sets (through its checkpoint),
+    not the teacher's: their settings leave the distillation section out, as sample_domain's do."""
+    wf = copy_workflow(tmp_path)
+    (tmp_path / "study.yaml").write_text(
+        "evaluation: {tradeoff: {samplers: {ddim: [2]}, student: true, domains: [Vehicle]}}\n")
+    (tmp_path / "other.yaml").write_text("generator: {distillation: {spacing: karras, lr: 0.002}}\n")
+
+    def sample_commands(*extra):
+        out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", "--configfile",
+                        "config/test.yaml", str(tmp_path / "study.yaml"), *extra).stdout
+        return {line.split("--out ")[1].split()[0]: line for line in out.splitlines()
+                if "omnilidar sample " in line}
+
+    before, after = sample_commands(), sample_commands(str(tmp_path / "other.yaml"))
+    teacher = [k for k in before if "/full/ddim_2/" in k]
+    student = [k for k in before if "/student/" in k]
+    assert teacher and student and before.keys() == after.keys()
+    assert all(before[k] == after[k] and "distillation" not in before[k] for k in teacher)
+    assert all("data/generator/full/student.pt" in before[k] for k in student)
+
+
 def test_the_student_check_trains_no_segmentor_and_the_full_study_keeps_its_curve(tmp_path):
     """config/student.yaml turns the study's downstream curve off: the student against its teacher
     needs no labeler, pseudo-labels or students; the default study still plans and reads the curve."""
