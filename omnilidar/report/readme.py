@@ -314,8 +314,6 @@ def benchmark(doc: dict) -> str:
 
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
              "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
-             "student_check": student_check, "student_1step_progressive": student_check,
-             "student_1step_consistency": student_check, "student_narrow_2step": student_check,
              "sampler_quickstart": sampler_points, "pi3det_summary": pi3det_summary,
              "run_cost_detection": run_cost, "domain_fidelity": domain_fidelity,
              "effects_tradeoff": effects_tradeoff,
@@ -327,9 +325,11 @@ def render_page(text: str, results: Path, page: str | Path | None = None) -> str
 
     def block(match: re.Match) -> str:
         name = match["name"]
-        renderer = benchmark if name.startswith("bench_") else RENDERERS.get(name)
+        renderer = (benchmark if name.startswith("bench_") else student_check if name.startswith("student_")
+                    else RENDERERS.get(name))
         if renderer is None:
-            raise InputError(page, f"unknown results block {name!r} (known: {', '.join(RENDERERS)}, bench_<name>)")
+            raise InputError(page, f"unknown results block {name!r} "
+                                   f"(known: {', '.join(RENDERERS)}, bench_<name>, student_<name>)")
         doc = read_json(Path(results) / f"{name.removesuffix('.short')}.json", f"result file of block {name!r} not found")
         return f"{match.group(1)}{renderer(doc).rstrip()}\n{match.group(4)}"
 
