@@ -196,8 +196,8 @@ def bench_student(args) -> tuple[list, dict]:
         raise SystemExit(f"{args.student}: not a distilled student")
     teacher, teacher_payload = load_generator(payload["student"]["teacher"], device=device)
     cache = load_prompt_cache(args.prompts)
-    print(f"student {args.student} ({payload['student']['steps']} steps of {payload['student']['sampler']}) and teacher "
-          f"{payload['student']['teacher']}, device {device}, threads {torch.get_num_threads()}")
+    print(f"student {args.student} ({payload['student']['steps']} steps of {payload['student']['sampler']}) "
+          f"and teacher {payload['student']['teacher']}, device {device}, threads {torch.get_num_threads()}")
     rows = [(f"teacher {spec}", _time_sampling(teacher, teacher_payload, cache, spec.split(":")[0],
                                                 int(spec.split(":")[1]), args, device)) for spec in args.samplers]
     steps, solver = int(payload["student"]["steps"]), payload["student"]["sampler"]

@@ -14,7 +14,7 @@ from omnilidar.errors import InputError
 from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.distill import (_grid_logsnr, compression_loss, consistency_loss, ddim_move, distillation_loss,
                                         two_step_target)
-from omnilidar.generator.distill_steps import student_steps
+from omnilidar.generator.distill_steps import student_sampler, student_steps
 from omnilidar.generator.samplers import SPACINGS, make_scheduler, time_grid
 from omnilidar.generator.sampling import sample_shard, student_sampling
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
@@ -98,7 +98,7 @@ def test_the_student_trains_on_the_grid_its_ddim_sampler_walks(spacing):
     schedule, n = CosineLogSNRSchedule(), 4
     index = torch.arange(n, 0, -1)  # the sampler's order: from noise (index n) to data (index 1)
     start, mid, end = _grid_logsnr(schedule, n, spacing, index, (0, 1, 2))
-    sampler = make_scheduler("ddim" if spacing == "uniform" else f"ddim_{spacing}", schedule)
+    sampler = make_scheduler(student_sampler({"spacing": spacing}), schedule)
     sampler.set_timesteps(n)
     walked = schedule.logsnr(time_grid(schedule, n, spacing))
     torch.testing.assert_close(start, walked[:-1])

@@ -84,9 +84,6 @@ def _grid_logsnr(schedule: CosineLogSNRSchedule, steps: int, spacing: str, index
     """logSNR at step ``index`` (1..steps, counted from the data end) of a ``steps``-step DDIM grid of
     ``spacing`` (:func:`omnilidar.generator.samplers.time_grid`), moved on by each of ``halves`` half
     steps towards the data: (0,) is the step's start, (0, 1, 2) its start, midpoint and end."""
-    if spacing == "uniform":  # t = index / steps, in closed form
-        t = index.double() / steps
-        return [schedule.logsnr(t - h * 0.5 / steps) for h in halves]
     grid = time_grid(schedule, 2 * steps, spacing).to(index.device)
     start = 2 * (steps - index)
     return [schedule.logsnr(grid[start + h]) for h in halves]

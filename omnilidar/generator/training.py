@@ -447,8 +447,8 @@ def train_generator(
             **{k: v for k, v in summary.items() if k != "work_dir"},
         }
         if dist is not None:
-            payload["student"] = {"sampler": student_sampler(dist), "steps": student_steps(dist), "teacher": str(teacher),
-                                  "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"]),
+            payload["student"] = {"sampler": student_sampler(dist), "steps": student_steps(dist),
+                                  "teacher": str(teacher), "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"]),
                                   "method": dist["method"]}
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
