@@ -41,6 +41,30 @@ def test_trend_predicts_where_a_rising_gain_crosses_each_level():
     assert "no crossing predicted" in flat["crossings"]["supervised_only"]["note"]
 
 
+
+def test_a_rise_within_the_seeds_noise_places_no_crossing():
+    """Seeds that scatter more than the means move: the slope is positive but within two standard
+    errors of flat, so no crossing is extrapolated; the same means with tight seeds place one."""
+    def budgets(spread):
+        return [{"iterations": n, "train_cpu_minutes": m,
+                 "gain_over_supervised": {"mean": g, "per_seed": [g - spread, g, g + spread]}}
+                for n, m, g in ((100, 1.0, -0.09), (300, 3.0, -0.075), (600, 6.0, -0.081), (1000, 10.0, -0.084))]
+    noisy = bg.trend(budgets(0.02), {"supervised_only": 0.0})
+    assert noisy["fit"]["points"] == 12 and noisy["fit"]["slope_per_decade"] > 0
+    assert noisy["fit"]["slope_per_decade"] < 2 * noisy["fit"]["slope_std_error"] and not noisy["fit"]["rises"]
+    cross = noisy["crossings"]["supervised_only"]
+    assert cross["trend_cpu_minutes"] is None and "within two standard errors of flat" in cross["note"]
+    # The earliest crossing the seeds allow: the centre's line at slope + 2 standard errors.
+    steepest = noisy["fit"]["slope_per_decade"] + 2 * noisy["fit"]["slope_std_error"]
+    centre_x = np.mean(np.log10([1.0, 3.0, 6.0, 10.0]))
+    assert np.log10(cross["earliest_cpu_minutes"]) == pytest.approx(centre_x + 0.0825 / steepest)
+    assert cross["earliest_iterations"] == round(cross["earliest_cpu_minutes"] / 0.01)
+    steady = [{**b, "gain_over_supervised": {"mean": g, "per_seed": [g] * 3}}
+              for b, g in zip(budgets(0.0), (-0.09, -0.06, -0.045, -0.03))]
+    tight = bg.trend(steady, {"supervised_only": 0.0})
+    assert tight["fit"]["rises"] and tight["crossings"]["supervised_only"]["trend_cpu_minutes"] > 10.0
+
+
 def test_budget_command_pairs_seeds_and_writes_result_and_figure(tmp_path, capsys):
     refs = [_seeded("supervised_only", m, s) for s, m in enumerate([0.10, 0.12, 0.11])]
     refs += [_seeded("real_pseudo", m, s) for s, m in enumerate([0.15, 0.16, 0.17])]

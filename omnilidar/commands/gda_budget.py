@@ -111,6 +111,8 @@ def run(args) -> int:
         where = (f"measured at {cross['first_measured_budget']} it." if cross["first_measured_budget"] is not None
                  else f"trend: ~{cross['trend_iterations']:.3g} it. ({cross['trend_cpu_minutes']:.3g} CPU-min)"
                  if cross["trend_cpu_minutes"] else cross.get("note", "not reached"))
+        if cross.get("earliest_cpu_minutes"):
+            where += f"; no earlier than ~{cross['earliest_iterations']:.3g} it. at the steepest slope the seeds allow"
         print(f"  reaches {name} ({100 * cross['level_gain']:.2f}): {where}")
     warn_about_labeler(labeler_check)
     print(f"result: {args.out}  figure: {args.figure}")

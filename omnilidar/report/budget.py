@@ -5,8 +5,9 @@ trained into the decomposition's regime with several seeds. Gains are taken seed
 against the decomposition's supervised-only row (same seeds), beside the gain of the same
 number of real scans under the same labeler (``real_pseudo``): the level a perfect generator
 would reach with this labeler. Where the measured points do not reach a level, a least-squares
-line of the mean gain against log10(CPU-minutes) says where the trend would (only when it
-rises).
+line of every seed's gain against log10(CPU-minutes) says where the trend would, but only when
+it rises by more than two standard errors of its slope: a line within the seeds' noise of flat
+places no crossing.
 """
 
 from __future__ import annotations
@@ -44,26 +45,58 @@ def budget_record(iterations: int, generator: dict, quality: dict, runs: list[di
     }
 
 
+def fit_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float | None]:
+    """Least-squares slope, intercept and the slope's standard error (None with two points or fewer)."""
+    if len(set(x.tolist())) < 2:
+        return 0.0, float(y.mean()), None
+    slope, intercept = np.polyfit(x, y, 1)
+    if len(x) <= 2:
+        return float(slope), float(intercept), None
+    residual = y - (intercept + slope * x)
+    spread = np.sum((x - x.mean()) ** 2)
+    return float(slope), float(intercept), float(np.sqrt(np.sum(residual ** 2) / (len(x) - 2) / spread))
+
+
 def trend(budgets: list[dict], levels: dict[str, float]) -> dict:
-    """Least-squares line of the mean gain against log10(CPU-minutes), and per level (a gain over
-    supervised-only) the first measured budget that reaches it and where the line would."""
-    x = np.log10([b["train_cpu_minutes"] for b in budgets])
-    y = np.asarray([b["gain_over_supervised"]["mean"] for b in budgets])
-    slope, intercept = (np.polyfit(x, y, 1) if len(set(x.tolist())) > 1 else (0.0, float(y.mean())))
-    out = {"fit": {"model": "mean gain = intercept + slope * log10(CPU-minutes)",
-                   "slope_per_decade": float(slope), "intercept": float(intercept)}, "crossings": {}}
+    """Least-squares line of every seed's gain (a budget's mean where it records no seeds) against
+    log10(CPU-minutes), and per level (a gain over supervised-only) the first measured budget that
+    reaches it and, when the line rises beyond two standard errors, where the line would; where a level
+    is not reached, also the earliest budget the seeds allow (the slope plus two standard errors)."""
+    xs, ys = [], []
+    for b in budgets:
+        gains = b["gain_over_supervised"].get("per_seed") or [b["gain_over_supervised"]["mean"]]
+        xs += [np.log10(b["train_cpu_minutes"])] * len(gains)
+        ys += list(gains)
+    slope, intercept, error = fit_line(np.asarray(xs), np.asarray(ys, dtype=float))
+    flat = 1e-9  # slopes below this are rounding noise of an exactly level line
+    rises = slope > max(2 * error if error is not None else 0.0, flat)
+    steepest = slope + 2 * error if error is not None else None  # the fastest rise the seeds allow
+    centre = (float(np.mean(xs)), float(np.mean(ys)))
+    per_iteration = float(np.median([b["train_cpu_minutes"] / b["iterations"] for b in budgets]))
+    out = {"fit": {"model": "seed gain = intercept + slope * log10(CPU-minutes)", "points": len(xs),
+                   "slope_per_decade": slope, "slope_std_error": error, "intercept": intercept,
+                   "rises": bool(rises)}, "crossings": {}}
     for name, level in levels.items():
         reached = [b for b in budgets if b["gain_over_supervised"]["mean"] >= level]
         cross = {"level_gain": level, "first_measured_budget": reached[0]["iterations"] if reached else None,
                  "first_measured_cpu_minutes": reached[0]["train_cpu_minutes"] if reached else None}
-        if slope > 0:
+        if not reached and steepest is not None and steepest > flat:
+            # Earliest crossing the data allow: the line through the points' centre at the steepest slope.
+            earliest = float(10 ** min(centre[0] + (level - centre[1]) / steepest, 300.0))
+            cross["earliest_cpu_minutes"] = earliest
+            cross["earliest_iterations"] = int(round(earliest / per_iteration))
+        if rises:
             minutes = float(10 ** ((level - intercept) / slope))
             cross["trend_cpu_minutes"] = minutes
-            per_iteration = np.median([b["train_cpu_minutes"] / b["iterations"] for b in budgets])
             cross["trend_iterations"] = int(round(minutes / per_iteration))
         else:
             cross["trend_cpu_minutes"] = cross["trend_iterations"] = None
-            cross["note"] = "the gain does not rise with the budget in the measured range: no crossing predicted"
+            if slope > 0:
+                cross["note"] = (f"the gain does not rise measurably in the measured range (slope "
+                                 f"{100 * slope:.2f} +- {100 * error:.2f} points per decade, within two standard "
+                                 f"errors of flat): no crossing predicted")
+            else:
+                cross["note"] = "the gain does not rise with the budget in the measured range: no crossing predicted"
         out["crossings"][name] = cross
     return out
 
@@ -100,7 +133,7 @@ def budget_figure(path: str | Path, doc: dict) -> None:
     hi = max([x.max(), *[m for m in reach if m < 1e4 * x.max()]])
     line = np.geomspace(x.min(), hi, 50)
     ax.plot(line, 100 * (fit["intercept"] + fit["slope_per_decade"] * np.log10(line)), ":", color="#1f77b4",
-            lw=1, label="trend (fit on means)")
+            lw=1, label="trend (fit on seeds)")
     ax.set_xscale("log")
     readable_log_x(ax)
     ax.set_xlabel("generator training (CPU-minutes)")

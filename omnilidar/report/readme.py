@@ -101,11 +101,18 @@ def gda_budget(doc: dict) -> str:
         if cross["first_measured_budget"] is not None:
             where = f"reached at {cross['first_measured_budget']} iterations"
         elif cross.get("trend_cpu_minutes"):
-            where = (f"not reached in the measured range; the trend "
-                     f"({100 * doc['trend']['fit']['slope_per_decade']:.2f} points per decade of compute) reaches it "
-                     f"near {cross['trend_iterations']:.3g} iterations ({cross['trend_cpu_minutes']:.3g} CPU-minutes)")
+            fit = doc["trend"]["fit"]
+            error = f" +- {100 * fit['slope_std_error']:.2f}" if fit.get("slope_std_error") is not None else ""
+            where = (f"not reached in the measured range; the trend ({100 * fit['slope_per_decade']:.2f}{error} "
+                     f"points per decade of compute) reaches it near {cross['trend_iterations']:.3g} iterations "
+                     f"({cross['trend_cpu_minutes']:.3g} CPU-minutes)")
         else:
             where = "not reached; " + cross.get("note", "")
+        if cross.get("earliest_cpu_minutes"):
+            steepest = doc["trend"]["fit"]["slope_per_decade"] + 2 * doc["trend"]["fit"]["slope_std_error"]
+            where += (f"; even the steepest rise the seeds allow ({100 * steepest:.2f} points per decade, slope + 2 "
+                      f"standard errors) reaches it no earlier than {cross['earliest_iterations']:.3g} iterations "
+                      f"({cross['earliest_cpu_minutes']:.3g} CPU-minutes)")
         lines.append(f"- {name.replace('_', ' ')} level ({100 * cross['level_gain']:.2f}): {where}.")
     return "\n".join(lines)
 
