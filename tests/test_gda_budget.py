@@ -41,7 +41,6 @@ def test_trend_predicts_where_a_rising_gain_crosses_each_level():
     assert "no crossing predicted" in flat["crossings"]["supervised_only"]["note"]
 
 
-
 def test_a_rise_within_the_seeds_noise_places_no_crossing():
     """Seeds that scatter more than the means move: the slope is positive but within two standard
     errors of flat, so no crossing is extrapolated; the same means with tight seeds place one."""
@@ -56,6 +55,7 @@ def test_a_rise_within_the_seeds_noise_places_no_crossing():
     assert cross["trend_cpu_minutes"] is None and "within two standard errors of flat" in cross["note"]
     # The earliest crossing the seeds allow: the centre's line at slope + 2 standard errors.
     steepest = noisy["fit"]["slope_per_decade"] + 2 * noisy["fit"]["slope_std_error"]
+    assert noisy["fit"]["steepest_slope_per_decade"] == pytest.approx(steepest)
     centre_x = np.mean(np.log10([1.0, 3.0, 6.0, 10.0]))
     assert np.log10(cross["earliest_cpu_minutes"]) == pytest.approx(centre_x + 0.0825 / steepest)
     assert cross["earliest_iterations"] == round(cross["earliest_cpu_minutes"] / 0.01)

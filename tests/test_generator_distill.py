@@ -277,7 +277,6 @@ def test_changed_distillation_settings_or_teacher_start_afresh(teacher, tmp_path
     assert moved["resumed_from"] == 0
 
 
-
 def test_the_distillation_seed_picks_the_student_without_the_run_seed(teacher, tmp_path):
     """distillation.seed null distils with the run's seed (the fixture's student, bit for bit); a set
     distillation seed gives another student, the same one under any run seed."""

@@ -31,9 +31,8 @@ def run(args) -> int:
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     if args.preset:
         settings = apply_preset(settings, args.preset)
-    seed = settings["distillation"]["seed"]  # its own seed, or the run's
-    summary = train_generator(settings, args.domains, args.prompts, args.work_dir, args.out,
-                              seed=args.seed if seed is None else seed, until=args.until, teacher=args.teacher)
+    summary = train_generator(settings, args.domains, args.prompts, args.work_dir, args.out, seed=args.seed,
+                              until=args.until, teacher=args.teacher)
     steps = student_steps(settings["distillation"])
     what = f"up to iteration {args.until}" if args.until else f"{summary['iterations']} iterations"
     print(f"distilled {args.teacher} into a {steps}-step student ({what}) -> {args.out}")

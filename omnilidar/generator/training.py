@@ -302,6 +302,8 @@ def train_generator(
 
     tr = settings["training"]
     dist = settings["distillation"] if teacher is not None else None
+    if dist is not None and dist.get("seed") is not None:  # a distillation seed of its own, else the run's
+        seed = int(dist["seed"])
     iterations = tr["iterations"] if dist is None else distillation_iterations(settings)
     if until is not None and not 0 < until < iterations:
         raise InputError(None, f"--until {until} must lie between 0 and the {iterations} iterations to train")

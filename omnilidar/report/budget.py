@@ -74,8 +74,8 @@ def trend(budgets: list[dict], levels: dict[str, float]) -> dict:
     centre = (float(np.mean(xs)), float(np.mean(ys)))
     per_iteration = float(np.median([b["train_cpu_minutes"] / b["iterations"] for b in budgets]))
     out = {"fit": {"model": "seed gain = intercept + slope * log10(CPU-minutes)", "points": len(xs),
-                   "slope_per_decade": slope, "slope_std_error": error, "intercept": intercept,
-                   "rises": bool(rises)}, "crossings": {}}
+                   "slope_per_decade": slope, "slope_std_error": error, "steepest_slope_per_decade": steepest,
+                   "intercept": intercept, "rises": bool(rises)}, "crossings": {}}
     for name, level in levels.items():
         reached = [b for b in budgets if b["gain_over_supervised"]["mean"] >= level]
         cross = {"level_gain": level, "first_measured_budget": reached[0]["iterations"] if reached else None,

@@ -109,7 +109,7 @@ def gda_budget(doc: dict) -> str:
         else:
             where = "not reached; " + cross.get("note", "")
         if cross.get("earliest_cpu_minutes"):
-            steepest = doc["trend"]["fit"]["slope_per_decade"] + 2 * doc["trend"]["fit"]["slope_std_error"]
+            steepest = doc["trend"]["fit"]["steepest_slope_per_decade"]
             where += (f"; even the steepest rise the seeds allow ({100 * steepest:.2f} points per decade, slope + 2 "
                       f"standard errors) reaches it no earlier than {cross['earliest_iterations']:.3g} iterations "
                       f"({cross['earliest_cpu_minutes']:.3g} CPU-minutes)")
