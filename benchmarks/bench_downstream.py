@@ -7,9 +7,10 @@ runs in its own process so that its peak memory (max RSS on CPU, max allocated
 on CUDA) is its own. Prints the median step time, iterations per second, peak
 memory and the SPVCNN / MinkUNet time ratio.
 
-With ``--cpu-paths``, SPVCNN on the CPU three ways in one run: as the stages run it (freed memory
-kept for reuse, sparse-product devoxelisation), with glibc's default allocator, and with the eight
-gathers for devoxelisation; medians, peak memory and the ratios.
+With ``--cpu-paths``, SPVCNN on the CPU four ways in one run: as the stages run it (freed memory
+kept for reuse, sparse-product devoxelisation, corner rows read from the trunk's kernel maps),
+with glibc's default allocator, with the eight gathers for devoxelisation, and with every corner
+found by binary search; medians, peak memory and the ratios.
 
     python benchmarks/bench_downstream.py [--steps 5] [--width W16] [--voxel 0.3] [--batch 2] [--cpu-paths]
 """
@@ -31,7 +32,7 @@ import bench_record  # noqa: E402
 
 
 def one(backbone: str, backend: str, width: str, voxel: float, batch: int, steps: int, device: str,
-        keep_freed: bool = True, gathers: bool = False) -> dict:
+        keep_freed: bool = True, gathers: bool = False, searched: bool = False) -> dict:
     import resource
 
     import numpy as np
@@ -44,6 +45,9 @@ def one(backbone: str, backend: str, width: str, voxel: float, batch: int, steps
         keep_freed_memory()
     if gathers:  # the devoxelisation other devices use
         spvcnn.devoxelize = spvcnn.devoxelize_by_gathers
+    if searched:  # every corner and own voxel by binary search, not from the trunk's kernel maps
+        spvcnn._neighbours = lambda x, stride: None
+        spvcnn._own_rows = lambda x, batch, stride: None
 
     from omnilidar.downstream.seg.dataset import SegCollate
     from omnilidar.downstream.seg.models import build_segmentor, model_spec
@@ -93,7 +97,7 @@ def compare_cpu_paths(args) -> None:
     base = dict(backbone="spvcnn", backend="torch", width=args.width, voxel=args.voxel, batch=args.batch,
                 steps=args.steps, device="cpu")
     ways = {"as the stages run": {}, "glibc default allocator": {"keep_freed": False},
-            "eight gathers": {"gathers": True}}
+            "eight gathers": {"gathers": True}, "corners searched": {"searched": True}}
     rows = {}
     for name, change in ways.items():
         row = child(base | change)

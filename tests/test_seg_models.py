@@ -158,6 +158,35 @@ def test_forward_backward_every_point_deterministic(crop, cls):
     assert torch.equal(logits, logits2) and all(torch.equal(a, b) for a, b in zip(g, g2))
 
 
+def test_spvcnn_reads_corners_from_the_trunks_kernel_maps_exactly_as_by_search(crop, monkeypatch):
+    """Corner and own-voxel rows taken from the cached kernel maps give the logits and gradients of
+    the binary search bit for bit, points whose float position rounds across a cell included."""
+    from omnilidar.segnets import spvcnn as module
+
+    rng = np.random.default_rng(1)
+    labels = rng.integers(0, 20, len(crop))
+    batch = collate([crop, crop[::3]], [labels, labels[::3]], max_voxels=None)
+    # Move some points most of a cell off their voxel (as if rounded across its face): their corners
+    # leave the voxel's neighbourhood and must be searched.
+    batch.point_coords[::50, 1] = torch.floor(batch.point_coords[::50, 1]) - 0.7
+    calls = []
+    lookup = module._lookup
+    monkeypatch.setattr(module, "_lookup", lambda x, b, cells: calls.append(len(cells)) or lookup(x, b, cells))
+
+    def run():
+        model = SPVCNN(width="W16", backend="torch", generator=torch.Generator().manual_seed(0))
+        logits = model(batch)
+        logits.square().sum().backward()
+        return logits.detach(), [p.grad.clone() for p in model.parameters()]
+
+    fast = run()
+    assert 0 < sum(calls) <= 3 * len(batch.point_coords[::50])  # only moved points were searched
+    monkeypatch.setattr(module, "_neighbours", lambda x, stride: None)
+    monkeypatch.setattr(module, "_own_rows", lambda x, batch, stride: None)
+    searched = run()
+    assert torch.equal(fast[0], searched[0]) and all(torch.equal(a, b) for a, b in zip(fast[1], searched[1]))
+
+
 def test_checkpoint_moves_between_backends(crop):
     from omnilidar.sparse import spconv_backend
 

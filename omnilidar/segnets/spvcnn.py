@@ -24,6 +24,7 @@ from torch.autograd.function import once_differentiable
 
 from omnilidar.segnets.minkunet import NUM_SEG_CLASSES, UNetTrunk, concat, init_weights, network_input
 from omnilidar.segnets.voxelize import SegBatch
+from omnilidar.sparse.conv import StridedEntry, SubmEntry
 from omnilidar.sparse.kernel_map import KeyTable
 from omnilidar.sparse.tensor import SparseTensor, pack_coords
 
@@ -41,17 +42,58 @@ def _lookup(x: SparseTensor, batch_idx: torch.Tensor, cells: torch.Tensor) -> to
     return torch.where(inside, found, torch.full_like(found, -1))
 
 
-def trilinear_weights(x: SparseTensor, points: torch.Tensor, stride: int) -> tuple[torch.Tensor, torch.Tensor]:
+def _neighbours(x: SparseTensor, stride: int) -> torch.Tensor | None:
+    """``(N, 27)`` rows of every voxel's 3 x 3 x 3 neighbours (-1 absent, offsets in weight order),
+    read from the submanifold kernel map the trunk cached for ``x``'s level; None without one."""
+    key = ("neighbours", stride)
+    if key not in x.cache:
+        entry = x.cache.get(f"subm{stride}")
+        if not isinstance(entry, SubmEntry) or entry.coords is not x.coords \
+                or entry.kernel_size != (3, 3, 3) or entry.dilation != (1, 1, 1):
+            return None
+        kmap = entry.kmap
+        table = torch.full((kmap.num_out, 27), -1, dtype=torch.int64, device=x.coords.device)
+        counts = torch.tensor(kmap.bounds, device=x.coords.device).diff()
+        offset = torch.repeat_interleave(torch.arange(27, device=x.coords.device), counts)
+        table[kmap.out_idx, offset] = kmap.in_idx
+        x.cache[key] = table
+    return x.cache[key]
+
+
+def _own_rows(x: SparseTensor, batch: SegBatch, stride: int) -> torch.Tensor | None:
+    """Row of ``x`` holding each point's own voxel at ``stride``, following every stride-1 voxel up
+    the trunk's cached stride-2 maps (each input feeds exactly one output); None without them."""
+    rows = batch.point_to_voxel
+    level_coords = x.cache.get("subm1").coords if isinstance(x.cache.get("subm1"), SubmEntry) else None
+    for level in range(1, stride.bit_length()):
+        entry = x.cache.get(f"down{level}")
+        if not isinstance(entry, StridedEntry) or entry.kernel_size != (2, 2, 2) or entry.in_coords is not level_coords:
+            return None
+        key = ("parent", level)
+        if key not in x.cache:
+            parent = torch.full((entry.kmap.num_in,), -1, dtype=torch.int64, device=rows.device)
+            parent[entry.kmap.in_idx] = entry.kmap.out_idx
+            x.cache[key] = parent
+        rows, level_coords = x.cache[key][rows], entry.out_coords
+    return rows if level_coords is x.coords else None
+
+
+def trilinear_weights(x: SparseTensor, points: torch.Tensor, stride: int,
+                      batch: SegBatch | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Neighbour rows ``(P, 8)`` (-1 absent) and weights ``(P, 8)`` of the points.
 
-    ``points``: ``(P, 4)`` float batch, position in stride-1 voxel units.
+    ``points``: ``(P, 4)`` float batch, position in stride-1 voxel units. With the ``batch`` the
+    points belong to, the rows come from the trunk's cached kernel maps where they can (a gather
+    instead of a binary search per corner; the same rows).
     """
     u = points[:, 1:].double() / stride - 0.5
     base = torch.floor(u)
     frac = (u - base).float()
     cells = base.long()[:, None, :] + _CORNERS.to(points.device)  # (P, 8, 3)
     batch_idx = points[:, 0].long()[:, None].expand(-1, 8)
-    rows = _lookup(x, batch_idx, cells)
+    rows = _corner_rows(x, batch, stride, batch_idx, cells) if batch is not None else None
+    if rows is None:
+        rows = _lookup(x, batch_idx, cells)
     corner = _CORNERS.to(points.device).bool()
     w = torch.where(corner, frac[:, None, :], 1 - frac[:, None, :]).prod(-1)  # (P, 8)
     w = torch.where(rows >= 0, w, torch.zeros_like(w))
@@ -113,10 +155,31 @@ def devoxelize_by_gathers(x: SparseTensor, rows: torch.Tensor, weights: torch.Te
     return out
 
 
+def _corner_rows(x: SparseTensor, batch: SegBatch, stride: int, batch_idx: torch.Tensor,
+                 cells: torch.Tensor) -> torch.Tensor | None:
+    """:func:`_lookup`'s rows for the corner ``cells`` ``(P, 8, 3)``, read from the neighbours of each
+    point's own voxel; a point whose corners leave that neighbourhood (its float position rounded
+    across a cell boundary) is looked up. None without the cached maps."""
+    table, own = _neighbours(x, stride), _own_rows(x, batch, stride)
+    if table is None or own is None:
+        return None
+    delta = cells - x.coords[own, 1:].long()[:, None, :]  # in -1..1 on every axis, but for rounding
+    near = ((delta >= -1) & (delta <= 1)).all(-1).all(-1)
+    offset = ((delta.clamp(-1, 1) + 1) * torch.tensor([9, 3, 1], device=cells.device)).sum(-1)
+    rows = table[own[:, None], offset]
+    if not bool(near.all()):
+        far = ~near
+        rows[far] = _lookup(x, batch_idx[far], cells[far])
+    return rows
+
+
 def point_voxel_rows(x: SparseTensor, batch: SegBatch, stride: int) -> torch.Tensor:
     """Row of ``x`` holding each point's own voxel at ``stride``, from the integer
     coordinates of the point's stride-1 voxel (float positions can round across a
     cell boundary and miss it)."""
+    rows = _own_rows(x, batch, stride)
+    if rows is not None:
+        return rows
     own = batch.voxel_coords[batch.point_to_voxel].long()
     cells = torch.div(own[:, 1:], stride, rounding_mode="floor")
     rows = _lookup(x, own[:, 0], cells)
@@ -197,7 +260,7 @@ class SPVCNN(nn.Module):
 
         def read(x: SparseTensor, stride: int) -> torch.Tensor:
             if stride not in interp:
-                interp[stride] = trilinear_weights(x, pts, stride)
+                interp[stride] = trilinear_weights(x, pts, stride, batch)
             return devoxelize(x, *interp[stride])
 
         z0 = read(x0, 1)
