@@ -5,6 +5,8 @@
 
 Reads the run's Snakemake logs (``.snakemake/log/*.snakemake.log``): the first log that built
 ``--target`` gives the elapsed time from its first to its last timestamp and the jobs it finished.
+With ``--after T`` the clone first built ``T`` in runs of its own and ``--target`` then built only
+what was left: the elapsed times and jobs of those runs add up (each run is listed in the file).
 Disk use is measured per top-level directory the workflow writes (data, work, results, logs,
 benchmarks/out). The jobs' own Snakemake benchmark files (benchmarks/out/**/*.tsv) give the CPU
 and wall seconds the jobs held, in all and per folder of job kind. ``omnilidar docs`` writes
@@ -66,16 +68,22 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run-dir", type=Path, required=True, help="the clone the run happened in")
     ap.add_argument("--target", default="results/semkitti_1pct.json")
+    ap.add_argument("--after", action="append", default=[],
+                    help="a target the clone built first, in a run of its own (repeat in order)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
-    log = log_that_built(args.run_dir, args.target)
-    seconds, jobs = elapsed(log)
+    runs = []
+    for target in args.after + [args.target]:
+        log = log_that_built(args.run_dir, target)
+        seconds, jobs = elapsed(log)
+        runs.append({"target": target, "log": log.name, "elapsed_seconds": seconds, "jobs": jobs})
     commit = subprocess.run(["git", "-C", str(args.run_dir), "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip() or None
-    doc = {"experiment": "run_cost", "target": args.target, "commit": commit, "log": log.name,
-           "elapsed_seconds": seconds, "jobs": jobs,
-           "disk_mb": {d: disk_mb(args.run_dir / d) for d in OUTPUT_DIRS},
-           "job_seconds": job_seconds(args.run_dir)}
+    doc = {"experiment": "run_cost", "target": args.target, "commit": commit, "log": runs[-1]["log"],
+           "elapsed_seconds": sum(r["elapsed_seconds"] for r in runs), "jobs": sum(r["jobs"] for r in runs)}
+    if args.after:
+        doc["runs"] = runs
+    doc |= {"disk_mb": {d: disk_mb(args.run_dir / d) for d in OUTPUT_DIRS}, "job_seconds": job_seconds(args.run_dir)}
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(json.dumps(doc, indent=2))
 

@@ -75,6 +75,20 @@ def test_a_short_block_renders_the_same_file_in_one_line(tmp_path):
     assert "| `downstream/train` | 2 | 2.0 | 2.5 |" in full and "The jobs held 2.0 CPU-minutes" in full
 
 
+def test_a_target_built_after_another_says_so_and_adds_the_runs(tmp_path):
+    """run_cost.py --after: the clone built the quick start first, then the rest of the target."""
+    runs = [{"target": "results/semkitti_1pct.json", "log": "a.log", "elapsed_seconds": 1548.0, "jobs": 63},
+            {"target": "results/gda_decomposition.json", "log": "b.log", "elapsed_seconds": 4800.0, "jobs": 90}]
+    doc = {"target": "results/gda_decomposition.json", "commit": "abc1234", "elapsed_seconds": 6348.0, "jobs": 153,
+           "runs": runs, "disk_mb": {"data": 1024.0}}
+    (tmp_path / "run_cost.json").write_text(json.dumps(doc))
+    page = tmp_path / "page.md"
+    page.write_text("<!-- results:run_cost.short -->\n<!-- /results:run_cost.short -->\n")
+    assert main(["docs", str(page), "--results", str(tmp_path)]) == 0
+    assert ("`results/gda_decomposition.json` from a clean clone in 2 runs (`results/semkitti_1pct.json` 25 min 48 s, "
+            "then the rest 80 min 00 s) (commit abc1234): 105 min 48 s, 153 jobs") in page.read_text()
+
+
 def test_a_benchmark_writes_the_result_file_its_docs_table_is_rendered_from(tmp_path):
     """A real (tiny) benchmark run with --out: its rows, the command without --out, and the page."""
     import subprocess

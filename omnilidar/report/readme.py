@@ -117,9 +117,19 @@ def gda_budget(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def _duration(seconds: float) -> str:
+    minutes, seconds = divmod(round(seconds), 60)
+    return f"{minutes} min {seconds:02d} s"
+
+
 def _run_line(doc: dict) -> str:
-    minutes, seconds = divmod(round(doc["elapsed_seconds"]), 60)
-    return (f"`{doc['target']}` from a clean clone (commit {doc['commit']}): {minutes} min {seconds:02d} s, "
+    runs = doc.get("runs", [])
+    steps = ""
+    if len(runs) > 1:  # built in steps: each earlier target in a run of its own, then the rest
+        steps = " in {} runs ({}, then the rest {})".format(
+            len(runs), ", ".join(f"`{r['target']}` {_duration(r['elapsed_seconds'])}" for r in runs[:-1]),
+            _duration(runs[-1]["elapsed_seconds"]))
+    return (f"`{doc['target']}` from a clean clone{steps} (commit {doc['commit']}): {_duration(doc['elapsed_seconds'])}, "
             f"{doc['jobs']} jobs, on a 2-core CPU machine, install excluded")
 
 
