@@ -6,7 +6,8 @@
 Reads the run's Snakemake logs (``.snakemake/log/*.snakemake.log``): the first log that built
 ``--target`` gives the elapsed time from its first to its last timestamp and the jobs it finished.
 With ``--after T`` the clone first built ``T`` in runs of its own and ``--target`` then built only
-what was left: the elapsed times and jobs of those runs add up (each run is listed in the file).
+what was left: the elapsed times and jobs of those runs add up (each run is listed in the file);
+``--after <name>.snakemake.log`` adds an interrupted run whose finished jobs the next run kept.
 Disk use is measured per top-level directory the workflow writes (data, work, results, logs,
 benchmarks/out). The jobs' own Snakemake benchmark files (benchmarks/out/**/*.tsv) give the CPU
 and wall seconds the jobs held, in all and per folder of job kind. ``omnilidar docs`` writes
@@ -69,14 +70,17 @@ def main() -> None:
     ap.add_argument("--run-dir", type=Path, required=True, help="the clone the run happened in")
     ap.add_argument("--target", default="results/semkitti_1pct.json")
     ap.add_argument("--after", action="append", default=[],
-                    help="a target the clone built first, in a run of its own (repeat in order)")
+                    help="a target the clone built first, in a run of its own, or the log name of an "
+                         "interrupted run whose finished jobs the last run kept (repeat, in order)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
     runs = []
     for target in args.after + [args.target]:
-        log = log_that_built(args.run_dir, target)
+        interrupted = target.endswith(".snakemake.log")  # a run stopped before it built anything asked for
+        log = args.run_dir / ".snakemake" / "log" / target if interrupted else log_that_built(args.run_dir, target)
         seconds, jobs = elapsed(log)
-        runs.append({"target": target, "log": log.name, "elapsed_seconds": seconds, "jobs": jobs})
+        runs.append({"target": None if interrupted else target, "log": log.name, "elapsed_seconds": seconds,
+                     "jobs": jobs})
     commit = subprocess.run(["git", "-C", str(args.run_dir), "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip() or None
     doc = {"experiment": "run_cost", "target": args.target, "commit": commit, "log": runs[-1]["log"],

@@ -76,17 +76,45 @@ def test_a_short_block_renders_the_same_file_in_one_line(tmp_path):
 
 
 def test_a_target_built_after_another_says_so_and_adds_the_runs(tmp_path):
-    """run_cost.py --after: the clone built the quick start first, then the rest of the target."""
+    """run_cost.py --after: the clone built the quick start first, was interrupted once, then built the rest."""
     runs = [{"target": "results/semkitti_1pct.json", "log": "a.log", "elapsed_seconds": 1548.0, "jobs": 63},
-            {"target": "results/gda_decomposition.json", "log": "b.log", "elapsed_seconds": 4800.0, "jobs": 90}]
-    doc = {"target": "results/gda_decomposition.json", "commit": "abc1234", "elapsed_seconds": 6348.0, "jobs": 153,
+            {"target": None, "log": "b.log", "elapsed_seconds": 335.0, "jobs": 2},
+            {"target": "results/gda_decomposition.json", "log": "c.log", "elapsed_seconds": 4800.0, "jobs": 88}]
+    doc = {"target": "results/gda_decomposition.json", "commit": "abc1234", "elapsed_seconds": 6683.0, "jobs": 153,
            "runs": runs, "disk_mb": {"data": 1024.0}}
     (tmp_path / "run_cost.json").write_text(json.dumps(doc))
     page = tmp_path / "page.md"
     page.write_text("<!-- results:run_cost.short -->\n<!-- /results:run_cost.short -->\n")
     assert main(["docs", str(page), "--results", str(tmp_path)]) == 0
-    assert ("`results/gda_decomposition.json` from a clean clone in 2 runs (`results/semkitti_1pct.json` 25 min 48 s, "
-            "then the rest 80 min 00 s) (commit abc1234): 105 min 48 s, 153 jobs") in page.read_text()
+    assert ("`results/gda_decomposition.json` from a clean clone in 3 runs (`results/semkitti_1pct.json` 25 min 48 s, "
+            "an interrupted run 5 min 35 s, then the rest 80 min 00 s) (commit abc1234): 111 min 23 s, 153 jobs"
+            ) in page.read_text()
+
+
+def test_run_cost_adds_the_runs_a_target_was_built_in(tmp_path):
+    """benchmarks/run_cost.py on a clone's Snakemake logs: the quick start's run, an interrupted run, the rest."""
+    import subprocess
+    import sys
+
+    logs = tmp_path / "run" / ".snakemake" / "log"
+    logs.mkdir(parents=True)
+
+    def log(name, start, end, output, jobs):
+        finished = "".join(f"Finished jobid: {i}\n" for i in range(jobs))
+        (logs / name).write_text(f"[Sat Nov 28 {start} 2026]\nrule x:\n    output: {output}\n{finished}"
+                                 f"[Sat Nov 28 {end} 2026]\n")
+
+    log("2026-11-28T1000.snakemake.log", "10:00:00", "10:25:48", "results/semkitti_1pct.json", 63)
+    log("2026-11-28T1100.snakemake.log", "11:00:00", "11:05:35", "data/a.pt", 2)
+    log("2026-11-28T1200.snakemake.log", "12:00:00", "13:20:00", "results/gda_decomposition.json", 88)
+    out = tmp_path / "run_cost.json"
+    subprocess.run([sys.executable, "benchmarks/run_cost.py", "--run-dir", str(tmp_path / "run"), "--target",
+                    "results/gda_decomposition.json", "--after", "results/semkitti_1pct.json",
+                    "--after", "2026-11-28T1100.snakemake.log", "--out", str(out)], cwd=ROOT, check=True,
+                   capture_output=True)
+    doc = json.loads(out.read_text())
+    assert doc["elapsed_seconds"] == 1548 + 335 + 4800 and doc["jobs"] == 63 + 2 + 88
+    assert [r["target"] for r in doc["runs"]] == ["results/semkitti_1pct.json", None, "results/gda_decomposition.json"]
 
 
 def test_a_benchmark_writes_the_result_file_its_docs_table_is_rendered_from(tmp_path):

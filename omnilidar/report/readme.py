@@ -127,7 +127,8 @@ def _run_line(doc: dict) -> str:
     steps = ""
     if len(runs) > 1:  # built in steps: each earlier target in a run of its own, then the rest
         steps = " in {} runs ({}, then the rest {})".format(
-            len(runs), ", ".join(f"`{r['target']}` {_duration(r['elapsed_seconds'])}" for r in runs[:-1]),
+            len(runs), ", ".join(f"`{r['target']}` {_duration(r['elapsed_seconds'])}" if r["target"]
+                                 else f"an interrupted run {_duration(r['elapsed_seconds'])}" for r in runs[:-1]),
             _duration(runs[-1]["elapsed_seconds"]))
     return (f"`{doc['target']}` from a clean clone{steps} (commit {doc['commit']}): {_duration(doc['elapsed_seconds'])}, "
             f"{doc['jobs']} jobs, on a 2-core CPU machine, install excluded")
