@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -44,6 +45,17 @@ def test_blocks_are_rewritten_from_their_result_files_and_checked(tmp_path):
     page.write_text("<!-- results:nonsense -->\n<!-- /results:nonsense -->\n")
     with pytest.raises(Exception, match="unknown results block"):
         readme.render_page(page.read_text(), tmp_path, page)
+
+
+def test_an_earlier_decomposition_kept_under_its_own_name_renders_as_a_decomposition():
+    """gda_decomposition_<name> blocks (an earlier run kept beside today's) use the decomposition's table."""
+    results = ROOT / "docs" / "results"
+    doc = json.loads((results / "gda_decomposition.json").read_text())
+    page = "<!-- results:gda_decomposition_old -->\n<!-- /results:gda_decomposition_old -->\n"
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / "gda_decomposition_old.json").write_text(json.dumps(doc))
+        text = readme.render_page(page, Path(tmp))
+    assert readme.gda_decomposition(doc).rstrip() in text
 
 
 def test_readme_and_docs_agree_with_the_results_kept_in_docs():

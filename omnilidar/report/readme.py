@@ -344,10 +344,10 @@ def render_page(text: str, results: Path, page: str | Path | None = None) -> str
     def block(match: re.Match) -> str:
         name = match["name"]
         renderer = (benchmark if name.startswith("bench_") else student_check if name.startswith("student_")
-                    else RENDERERS.get(name))
+                    else gda_decomposition if name.startswith("gda_decomposition_") else RENDERERS.get(name))
         if renderer is None:
-            raise InputError(page, f"unknown results block {name!r} "
-                                   f"(known: {', '.join(RENDERERS)}, bench_<name>, student_<name>)")
+            raise InputError(page, f"unknown results block {name!r} (known: {', '.join(RENDERERS)}, "
+                                   f"bench_<name>, student_<name>, gda_decomposition_<name>)")
         doc = read_json(Path(results) / f"{name.removesuffix('.short')}.json", f"result file of block {name!r} not found")
         return f"{match.group(1)}{renderer(doc).rstrip()}\n{match.group(4)}"
 
