@@ -62,9 +62,13 @@ def _neighbours(x: SparseTensor, stride: int) -> torch.Tensor | None:
 
 def _own_rows(x: SparseTensor, batch: SegBatch, stride: int) -> torch.Tensor | None:
     """Row of ``x`` holding each point's own voxel at ``stride``, following every stride-1 voxel up
-    the trunk's cached stride-2 maps (each input feeds exactly one output); None without them."""
+    the trunk's cached stride-2 maps (each input feeds exactly one output); None without them.
+    Kept in the cache: the corners and the voxelisation at one stride both ask for them."""
+    if ("own", stride) in x.cache:
+        return x.cache[("own", stride)]
     rows = batch.point_to_voxel
-    level_coords = x.cache.get("subm1").coords if isinstance(x.cache.get("subm1"), SubmEntry) else None
+    stem = x.cache.get("subm1")
+    level_coords = stem.coords if isinstance(stem, SubmEntry) else None
     for level in range(1, stride.bit_length()):
         entry = x.cache.get(f"down{level}")
         if not isinstance(entry, StridedEntry) or entry.kernel_size != (2, 2, 2) or entry.in_coords is not level_coords:
@@ -75,7 +79,10 @@ def _own_rows(x: SparseTensor, batch: SegBatch, stride: int) -> torch.Tensor | N
             parent[entry.kmap.in_idx] = entry.kmap.out_idx
             x.cache[key] = parent
         rows, level_coords = x.cache[key][rows], entry.out_coords
-    return rows if level_coords is x.coords else None
+    if level_coords is not x.coords:
+        return None
+    x.cache[("own", stride)] = rows
+    return rows
 
 
 def trilinear_weights(x: SparseTensor, points: torch.Tensor, stride: int,
