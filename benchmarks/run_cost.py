@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import subprocess
 from datetime import datetime
@@ -73,6 +74,9 @@ def main() -> None:
                     help="a target the clone built first, in a run of its own, or the log name of an "
                          "interrupted run whose finished jobs the last run kept (repeat, in order)")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--machine", default=f"a {os.cpu_count()}-core CPU machine",
+                    help="where the run happened, as the docs name it (default: this machine's cores)")
+    ap.add_argument("--commit", default=None, help="the run's commit where the run directory has no git history")
     args = ap.parse_args()
     runs = []
     for target in args.after + [args.target]:
@@ -82,8 +86,9 @@ def main() -> None:
         runs.append({"target": None if interrupted else target, "log": log.name, "elapsed_seconds": seconds,
                      "jobs": jobs})
     commit = subprocess.run(["git", "-C", str(args.run_dir), "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip() or None
-    doc = {"experiment": "run_cost", "target": args.target, "commit": commit, "log": runs[-1]["log"],
+                            text=True).stdout.strip() or args.commit
+    doc = {"experiment": "run_cost", "target": args.target, "commit": commit, "machine": args.machine,
+           "log": runs[-1]["log"],
            "elapsed_seconds": sum(r["elapsed_seconds"] for r in runs), "jobs": sum(r["jobs"] for r in runs)}
     if args.after:
         doc["runs"] = runs

@@ -122,10 +122,15 @@ def test_run_cost_adds_the_runs_a_target_was_built_in(tmp_path):
     out = tmp_path / "run_cost.json"
     subprocess.run([sys.executable, "benchmarks/run_cost.py", "--run-dir", str(tmp_path / "run"), "--target",
                     "results/gda_decomposition.json", "--after", "results/semkitti_1pct.json",
-                    "--after", "2026-11-28T1100.snakemake.log", "--out", str(out)], cwd=ROOT, check=True,
-                   capture_output=True)
+                    "--after", "2026-11-28T1100.snakemake.log", "--out", str(out), "--commit", "abc1234",
+                    "--machine", "one NVIDIA H200 GPU with 16 CPU cores"], cwd=ROOT, check=True, capture_output=True)
     doc = json.loads(out.read_text())
     assert doc["elapsed_seconds"] == 1548 + 335 + 4800 and doc["jobs"] == 63 + 2 + 88
+    # A run directory without git history (a copy on another machine) takes the commit it is given.
+    assert doc["commit"] == "abc1234" and doc["machine"] == "one NVIDIA H200 GPU with 16 CPU cores"
+    (tmp_path / "page.md").write_text("<!-- results:run_cost.short -->\n<!-- /results:run_cost.short -->\n")
+    assert main(["docs", str(tmp_path / "page.md"), "--results", str(tmp_path)]) == 0
+    assert "153 jobs, on one NVIDIA H200 GPU with 16 CPU cores, install excluded" in (tmp_path / "page.md").read_text()
     assert [r["target"] for r in doc["runs"]] == ["results/semkitti_1pct.json", None, "results/gda_decomposition.json"]
 
 

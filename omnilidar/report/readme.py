@@ -131,7 +131,7 @@ def _run_line(doc: dict) -> str:
                                  else f"an interrupted run {_duration(r['elapsed_seconds'])}" for r in runs[:-1]),
             _duration(runs[-1]["elapsed_seconds"]))
     return (f"`{doc['target']}` from a clean clone{steps} (commit {doc['commit']}): {_duration(doc['elapsed_seconds'])}, "
-            f"{doc['jobs']} jobs, on a 2-core CPU machine, install excluded")
+            f"{doc['jobs']} jobs, on {doc.get('machine', 'a 2-core CPU machine')}, install excluded")
 
 
 def run_cost_short(doc: dict) -> str:
@@ -148,7 +148,7 @@ def run_cost(doc: dict) -> str:
     jobs = doc.get("job_seconds")
     if jobs:  # the jobs' own benchmark files: where the time went
         lines += ["", f"The jobs held {jobs['cpu'] / 60:.1f} CPU-minutes ({jobs['wall'] / 60:.1f} job-minutes of wall "
-                      f"time) on the machine's 2 cores:", "",
+                      f"time):", "",
                   "| jobs (benchmarks/out/...) | count | CPU minutes | wall minutes |", "|---|---|---|---|"]
         by = sorted(jobs["by_folder"].items(), key=lambda kv: -kv[1]["wall"])
         lines += [f"| `{name}` | {g['jobs']} | {g['cpu'] / 60:.1f} | {g['wall'] / 60:.1f} |" for name, g in by]
