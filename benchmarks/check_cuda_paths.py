@@ -1,5 +1,5 @@
 """The CUDA paths, checked on a GPU machine: AMP training of the generator (bf16) and of a
-segmentor (fp16) through the real mmengine trainers, and CPU/CUDA agreement of sampling
+segmentor (bf16, fp16 on GPUs without it) through the real mmengine trainers, and CPU/CUDA agreement of sampling
 and of segmentation. Prints one line per check with its figures; exits 1 when one fails.
 
     python benchmarks/check_cuda_paths.py            # needs a CUDA device
@@ -24,7 +24,7 @@ from omnilidar.config import section_defaults
 from omnilidar.downstream.seg.dataset import records_from_entries
 from omnilidar.downstream.seg.evaluate import evaluate_records, load_segmentor
 from omnilidar.downstream.seg.label_spaces import get_label_space
-from omnilidar.downstream.seg.training import train_segmentor
+from omnilidar.downstream.seg.training import amp_dtype, train_segmentor
 from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.diffusion import generate
 from omnilidar.generator.schedule import CosineLogSNRSchedule
@@ -79,7 +79,7 @@ def check_segmentor(root: Path) -> None:
         seconds = time.perf_counter() - t0
         state = torch.load(out, weights_only=True)["state_dict"]
         finite = all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
-        report(f"{backbone} fp16 AMP training on CUDA", finite and summary["device"].startswith("cuda"),
+        report(f"{backbone} {amp_dtype()} AMP training on CUDA", finite and summary["device"].startswith("cuda"),
                iterations=summary["iterations"], seconds=f"{seconds:.1f}", backend=summary["backend"])
         scores = {}
         for device in ("cpu", "cuda"):

@@ -196,10 +196,16 @@ def point_voxel_rows(x: SparseTensor, batch: SegBatch, stride: int) -> torch.Ten
 
 
 def voxelize_points(x: SparseTensor, point_feats: torch.Tensor, rows: torch.Tensor) -> SparseTensor:
-    """Mean of the point features of each voxel of ``x`` (0 for voxels without points)."""
-    total = point_feats.new_zeros((x.num_voxels, point_feats.shape[1])).index_add_(0, rows, point_feats)
-    count = torch.bincount(rows, minlength=x.num_voxels).clamp_min(1).to(point_feats.dtype)
-    return x.replace_feats(total / count[:, None])
+    """Mean of the point features of each voxel of ``x`` (0 for voxels without points).
+
+    Summed in fp32 whatever the autocast dtype: a stride-16 voxel holds hundreds to thousands of
+    points, whose fp16 sum can pass fp16's 65504 (SPVCNN's loss went non-finite under fp16 AMP on an
+    H200) and drops increments well before that; the mean is returned in the features' dtype."""
+    wide = torch.promote_types(point_feats.dtype, torch.float32)
+    total = point_feats.new_zeros((x.num_voxels, point_feats.shape[1]), dtype=wide)
+    total.index_add_(0, rows, point_feats.to(wide))
+    count = torch.bincount(rows, minlength=x.num_voxels).clamp_min(1).to(wide)
+    return x.replace_feats((total / count[:, None]).to(point_feats.dtype))
 
 
 class SeededDropout(nn.Module):

@@ -1,8 +1,8 @@
 """Training a segmentor (MinkUNet or SPVCNN) from scratch with mmengine's Runner.
 
 The Runner provides the iteration loop, SGD (momentum 0.9, Nesterov, weight
-decay) through an optimizer wrapper (``AmpOptimWrapper`` with fp16 autocast on
-CUDA), a linear warm-up followed by cosine annealing to zero, resumable
+decay) through an optimizer wrapper (``AmpOptimWrapper`` with bf16 autocast on
+CUDA, fp16 on GPUs without bf16), a linear warm-up followed by cosine annealing to zero, resumable
 checkpoints in an undeclared work directory, and log lines with loss, learning
 rate, time per step and ETA.
 
@@ -116,6 +116,13 @@ def make_model(net: torch.nn.Module, loss_on: str):
 
 
 
+def amp_dtype() -> str:
+    """Autocast dtype of schedule.amp on CUDA: bf16 where the GPU has it. fp16's range overflowed:
+    SPVCNN's loss went non-finite early in training in every seed of one decomposition row on an
+    H200 (docs/benchmarks.md); bf16 keeps fp32's exponent range and needs no loss scaling."""
+    return "bfloat16" if torch.cuda.is_available() and torch.cuda.is_bf16_supported() else "float16"
+
+
 def train_segmentor(
     settings: dict,
     backbone: str,
@@ -178,7 +185,7 @@ def train_segmentor(
                      weight_decay=sched["weight_decay"])
     optim_wrapper = dict(type="OptimWrapper", optimizer=optimizer)
     if device.type == "cuda" and sched["amp"]:
-        optim_wrapper = dict(type="AmpOptimWrapper", dtype="float16", optimizer=optimizer)
+        optim_wrapper = dict(type="AmpOptimWrapper", dtype=amp_dtype(), optimizer=optimizer)
     meta = {"model": spec, "label_space": space.name, "seed": int(seed), "provenance": provenance}
     runner = iteration_runner(model, run_dir, loader, iterations, optim_wrapper, sched, [schedule_hook(iterations, sched)], meta,
                               resume_from, seed, until=until)
