@@ -33,6 +33,7 @@ from omnilidar.generator.unet import build_denoiser, count_parameters
 
 PAPER = {
     "range_image": {"height": 64, "width": 1024},
+    "training": {"crop_width": None},  # the paper trains on whole sweeps
     "model": {"base_channels": 64, "channel_multipliers": [1, 2, 4, 8], "num_res_blocks": 3,
               "cross_attention_levels": [1, 2, 3], "cdfm_levels": [2, 3], "mamba": {"d_state": 16}},
 }

@@ -46,9 +46,11 @@ def _commit() -> str | None:
     return f"{head} + uncommitted {', '.join(changed)}" if head and changed else head
 
 
-def write(out: Path | None, rows: list[dict], figures: dict, columns: list[str] | None = None) -> None:
+def write(out: Path | None, rows: list[dict], figures: dict, columns: list[str] | None = None,
+          machine: dict | None = None) -> None:
     """Write the result file when ``--out`` was given. ``rows``: one dict of strings per table row,
-    keyed by ``columns`` (default what, median, target); ``figures``: the raw numbers behind them."""
+    keyed by ``columns`` (default what, median, target); ``figures``: the raw numbers behind them;
+    ``machine``: where the figures were measured, when not on this machine (read from a run's logs)."""
     if out is None:
         return
     import torch
@@ -59,6 +61,10 @@ def write(out: Path | None, rows: list[dict], figures: dict, columns: list[str] 
            "machine": {"cpus": len(os.sched_getaffinity(0)), "processor": platform.processor() or platform.machine(),
                        "torch": torch.__version__, "python": platform.python_version()},
            "rows": rows, "figures": figures}
+    if torch.cuda.is_available():  # the accelerator the figures were measured on, by name
+        doc["machine"]["gpu"] = torch.cuda.get_device_name(0)
+    if machine is not None:
+        doc["machine"] = machine
     if columns is not None:
         doc["columns"] = list(columns)
     Path(out).write_text(json.dumps(doc, indent=2) + "\n")

@@ -198,3 +198,36 @@ def test_the_sampler_grid_names_the_best_solver_per_budget_and_the_students_chec
     best = doc["best_per_budget"]["20"]["JSD"]
     assert f"{best['sampler']}: {best['value']:.4g} +- {best['std']:.2g}" in rows[-1]
     assert "the 2-step student is within two standard deviations" in text and "Recommended" in text
+
+
+def test_step_times_reads_each_trainers_logged_steps_and_divergence(tmp_path):
+    """benchmarks/step_times.py on a run's job logs: per trainer the logged step times, the jobs whose
+    loss went non-finite, and the machine the run happened on (not this one)."""
+    import subprocess
+    import sys
+
+    def log(path, times, diverged=False):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        lines = [f"11/28 18:00:{i:02d} - mmengine - INFO - Iter(train) [{5 * i:3d}/200]  lr: 1e-2  eta: 0:01:00  "
+                 f"time: {t:.4f}  data_time: 0.01  loss: 1.0" for i, t in enumerate(times, 1)]
+        if diverged:
+            lines.append("FloatingPointError: training diverged (non-finite loss); lower schedule.lr")
+        path.write_text("\n".join(lines) + "\n")
+
+    log(tmp_path / "logs/generator/train_full.log", [1.0, 1.2, 1.4])
+    log(tmp_path / "logs/downstream/train/semantickitti_spvcnn_1pct_study-truth48_seed0.log", [1.5, 1.7], diverged=True)
+    log(tmp_path / "logs/downstream/train/semantickitti_spvcnn_1pct_study-real48_seed0.log", [1.6, 1.6, 1.6])
+    out = tmp_path / "bench_step_times_gpu.json"
+    subprocess.run([sys.executable, "benchmarks/step_times.py", "--run-dir", str(tmp_path), "--machine-gpu",
+                    "NVIDIA H200", "--machine-cpus", "16", "--torch", "2.11.0", "--out", str(out)],
+                   cwd=ROOT, check=True, capture_output=True)
+    doc = json.loads(out.read_text())
+    assert set(doc["figures"]) == {"generator", "SPVCNN student"}
+    assert doc["figures"]["generator"]["median_s"] == 1.2
+    spvcnn = doc["figures"]["SPVCNN student"]
+    assert spvcnn["jobs"] == 2 and spvcnn["diverged"] == {"semantickitti_spvcnn_1pct_study-truth48_seed0.log": 10}
+    assert doc["machine"] == {"cpus": 16, "processor": "x86_64", "torch": "2.11.0", "gpu": "NVIDIA H200"}
+    (tmp_path / "page.md").write_text("<!-- results:bench_step_times_gpu -->\n<!-- /results:bench_step_times_gpu -->\n")
+    assert main(["docs", str(tmp_path / "page.md"), "--results", str(tmp_path)]) == 0
+    assert "1 diverged (non-finite loss) after iteration 10-10" in (tmp_path / "page.md").read_text()
+    assert "one NVIDIA H200, 16 CPUs" in (tmp_path / "page.md").read_text()

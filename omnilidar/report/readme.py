@@ -326,16 +326,20 @@ def benchmark(doc: dict) -> str:
     columns = doc.get("columns", ["what", "median", "target"])
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     lines += ["| " + " | ".join(str(r.get(c, "")) for c in columns) + " |" for r in doc["rows"]]
-    lines += ["", f"`{doc['command']}` (commit {doc['commit']}, {m['cpus']} CPUs, torch {m['torch']}, {doc['created'][:10]})"]
+    lines += ["", f"`{doc['command']}` (commit {doc['commit']}, " + (f"one {m['gpu']}, " if m.get("gpu") else "")
+              + f"{m['cpus']} CPUs, torch {m['torch']}, {doc['created'][:10]})"]
     return "\n".join(lines)
 
 
 RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposition, "gda_budget": gda_budget,
-             "run_cost": run_cost, "run_cost.short": run_cost_short, "run_cost_decomposition": run_cost,
+             "run_cost": run_cost, "run_cost.short": run_cost_short,
              "sampler_quickstart": sampler_points, "pi3det_summary": pi3det_summary,
-             "run_cost_detection": run_cost, "domain_fidelity": domain_fidelity,
+             "domain_fidelity": domain_fidelity,
              "effects_tradeoff": effects_tradeoff,
              "sampler_grid": sampler_grid}
+
+PREFIXES = {"bench_": benchmark, "student_": student_check, "gda_decomposition_": gda_decomposition,
+            "run_cost_": run_cost}
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
@@ -343,11 +347,13 @@ def render_page(text: str, results: Path, page: str | Path | None = None) -> str
 
     def block(match: re.Match) -> str:
         name = match["name"]
-        renderer = (benchmark if name.startswith("bench_") else student_check if name.startswith("student_")
-                    else gda_decomposition if name.startswith("gda_decomposition_") else RENDERERS.get(name))
+        renderer = RENDERERS.get(name)
+        for prefix, by_prefix in PREFIXES.items():  # kept runs and benchmarks: one file each, one renderer
+            if renderer is None and name.startswith(prefix):
+                renderer = run_cost_short if by_prefix is run_cost and name.endswith(".short") else by_prefix
         if renderer is None:
             raise InputError(page, f"unknown results block {name!r} (known: {', '.join(RENDERERS)}, "
-                                   f"bench_<name>, student_<name>, gda_decomposition_<name>)")
+                                   f"{', '.join(p + '<name>' for p in PREFIXES)})")
         doc = read_json(Path(results) / f"{name.removesuffix('.short')}.json", f"result file of block {name!r} not found")
         return f"{match.group(1)}{renderer(doc).rstrip()}\n{match.group(4)}"
 
