@@ -15,3 +15,11 @@ def resolve_device(name: str, setting: str = "device") -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise InputError(None, f"{setting} {name}: CUDA is not available on this machine")
     return torch.device(name)
+
+
+def set_threads(threads: int | None) -> None:
+    """CPU threads for torch: a job uses the cores Snakemake gives it (``--threads {threads}``). More
+    OpenMP threads than free cores stall at every barrier: on a loaded 2-core machine the samplers
+    and the distillation used well under one core with torch's default of two."""
+    if threads:
+        torch.set_num_threads(int(threads))

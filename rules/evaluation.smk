@@ -62,7 +62,7 @@ rule sample_eval:
     shell:
         "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
         "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "
-        "--seed {params.seed} --out {output} > {log} 2>&1"
+        "--seed {params.seed} --threads {threads} --out {output} > {log} 2>&1"
 
 
 rule train_extractor:
@@ -118,7 +118,7 @@ rule train_single_domain:
     shell:
         generator_launcher() + " train-generator --domains {input.domains} --prompts {input.prompts} "
         "--preset single_domain --settings {params.settings:q} --seed {params.seed} "
-        "--work-dir {params.work_dir} --out {output} > {log} 2>&1"
+        "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
 
 
 rule generation_quality:

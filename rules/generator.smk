@@ -6,12 +6,12 @@ GENERATOR = f"{DATA}/generator"
 TRAIN_GENERATOR_SHELL = (
     generator_launcher() + " train-generator --domains {{input.domains}} --prompts {{input.prompts}} "
     "--preset {preset} --settings {{params.settings:q}} --seed {{params.seed}} "
-    "--work-dir {{params.work_dir}} --out {{output}}{until} > {{log}} 2>&1"
+    "--work-dir {{params.work_dir}} --threads {{threads}} --out {{output}}{until} > {{log}} 2>&1"
 )
 SAMPLE_SHELL = (
     "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
     "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "
-    "--seed {params.seed} --out {output} > {log} 2>&1"
+    "--seed {params.seed} --threads {threads} --out {output} > {log} 2>&1"
 )
 
 
@@ -127,7 +127,7 @@ rule distill_generator:
     shell:
         "omnilidar distill-generator --teacher {input.teacher} --domains {input.domains} --prompts {input.prompts} "
         "--preset {wildcards.preset} --settings {params.settings:q} --seed {params.seed} "
-        "--work-dir {params.work_dir} --out {output} > {log} 2>&1"
+        "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
 
 
 rule sample_domain:

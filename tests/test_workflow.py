@@ -93,6 +93,19 @@ def test_paper_config_plans_paper_scale_shards(workdir):
     assert "synthesize" not in jobs and jobs["index_dataset"] >= 1  # real roots are indexed
 
 
+def test_generator_jobs_run_torch_on_the_threads_snakemake_gives_them(workdir):
+    """Training, distilling and sampling the generator get `--threads {threads}` like every downstream
+    job: with torch's default (every core) beside another job they stalled at OpenMP barriers
+    (benchmarks/bench_sampling_threads.py)."""
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", "results/tradeoff.json", "results/semkitti_1pct.json",
+                    "--configfile", TINY, "config/student.yaml").stdout
+    commands = [line for line in out.splitlines()
+                if re.search(r"omnilidar (sample|train-generator|distill-generator) ", line)]
+    kinds = {re.search(r"omnilidar (\S+) ", line)[1] for line in commands}
+    assert kinds == {"sample", "train-generator", "distill-generator"}, kinds
+    assert all(" --threads 1 " in line for line in commands)
+
+
 def test_generator_dag_shards_sampling(workdir):
     config = load_config(workdir / "config" / "config.yaml")
     jobs = planned_jobs(workdir, "samples")

@@ -54,3 +54,8 @@ def pool_transform_args(parser: argparse.ArgumentParser, domain_help: str) -> No
     parser.add_argument("--pool", required=True, help="pool of real scans (make-subset --exclude)")
     settings_arg(parser)
     parser.add_argument("--out", required=True, help="folder to write (atomically): velodyne/, labels/, pool.json")
+
+
+def threads_arg(parser) -> None:
+    """``--threads``: torch's CPU threads; the workflow passes the cores Snakemake gives the job."""
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads for torch (default: torch's, every core)")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import seed_arg, settings_arg, threads_arg
 
 HELP = "distill a trained generator into a student that samples in a few DDIM steps (resumes from --work-dir)"
 DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -10,6 +10,7 @@ DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omni
 
 def add_arguments(parser) -> None:
     settings_arg(parser)
+    threads_arg(parser)
     seed_arg(parser)
     parser.add_argument("--teacher", required=True, help="the trained generator (train-generator's --out)")
     parser.add_argument("--domains", required=True, help="domains index JSON the teacher was trained on")
@@ -27,7 +28,9 @@ def run(args) -> int:
     from omnilidar.generator.distill_steps import student_steps
     from omnilidar.generator.presets import apply_preset
     from omnilidar.generator.training import train_generator
+    from omnilidar.devices import set_threads
 
+    set_threads(args.threads)
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     if args.preset:
         settings = apply_preset(settings, args.preset)

@@ -26,7 +26,7 @@ def run(args) -> int:
     from omnilidar.downstream.det.evaluate import score
     from omnilidar.downstream.det.predict import predict_frames, recall_rates
     from omnilidar.downstream.det.runs import det_settings, load_detector, platform_records
-    from omnilidar.downstream.seg.training import set_threads
+    from omnilidar.devices import set_threads
     from omnilidar.io.atomic import write_text_atomic
 
     set_threads(args.threads)

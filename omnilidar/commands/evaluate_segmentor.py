@@ -38,7 +38,7 @@ def run(args) -> int:
         semantickitti_dir_records,
     )
     from omnilidar.data.subsets import read_subset
-    from omnilidar.downstream.seg.training import set_threads
+    from omnilidar.devices import set_threads
     from omnilidar.errors import InputError
     from omnilidar.io.atomic import write_text_atomic
 

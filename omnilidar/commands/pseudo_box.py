@@ -24,7 +24,7 @@ def run(args) -> int:
     from omnilidar.downstream.det.predict import predict_frames
     from omnilidar.downstream.det.pseudo_boxes import sample_scans, write_shard
     from omnilidar.downstream.det.runs import det_settings, load_detector
-    from omnilidar.downstream.seg.training import set_threads
+    from omnilidar.devices import set_threads
 
     set_threads(args.threads)
     started = time.time()

@@ -24,7 +24,7 @@ def run(args) -> int:
     from omnilidar.config import validate
     from omnilidar.downstream.seg.evaluate import load_segmentor
     from omnilidar.downstream.seg.pseudo_label import pseudo_label_pool, pseudo_label_shard
-    from omnilidar.downstream.seg.training import set_threads
+    from omnilidar.devices import set_threads
 
     set_threads(args.threads)
     section = validate({"labeler": dict(args.settings)}, "downstream.schema.yaml", source="--settings")["labeler"]

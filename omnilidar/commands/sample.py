@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import seed_arg, settings_arg, threads_arg
 
 HELP = "sample a shard of range images + SemanticKITTI point clouds for one domain from a trained generator"
 DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -11,6 +11,7 @@ DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omni
 def add_arguments(parser) -> None:
     settings_arg(parser)
     seed_arg(parser)
+    threads_arg(parser)
     parser.add_argument("--checkpoint", required=True, help="generator weights from train-generator")
     parser.add_argument("--prompts", required=True, help="prompt cache from encode-prompts")
     parser.add_argument("--domain", required=True, help="domain name (as in the domains index)")
@@ -22,11 +23,12 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from omnilidar.checkpoints import job_provenance
     from omnilidar.config import validate
-    from omnilidar.devices import resolve_device
+    from omnilidar.devices import resolve_device, set_threads
     from omnilidar.generator.sampling import sample_shard, student_sampling
     from omnilidar.generator.text import load_prompt_cache
     from omnilidar.generator.checkpoint import load_generator
 
+    set_threads(args.threads)
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     sampling = settings["sampling"]
     n = args.scans_per_shard or sampling["scans_per_shard"]

@@ -27,7 +27,7 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from omnilidar.downstream.det.labeler import import_labeler
     from omnilidar.downstream.det.runs import det_settings, platform_records, run_training
-    from omnilidar.downstream.seg.training import set_threads
+    from omnilidar.devices import set_threads
 
     set_threads(args.threads)
     det = det_settings(args.settings)

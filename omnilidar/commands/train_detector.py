@@ -31,7 +31,7 @@ def run(args) -> int:
     from omnilidar.downstream.det.pseudo_boxes import generated_records
     from omnilidar.downstream.det.runs import det_settings, run_training
     from omnilidar.downstream.det.subsets import make_det_subset
-    from omnilidar.downstream.seg.training import set_threads
+    from omnilidar.devices import set_threads
     from omnilidar.errors import InputError
 
     set_threads(args.threads)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, settings_arg
+from omnilidar.commands._common import seed_arg, settings_arg, threads_arg
 
 HELP = "train the text-conditioned range-image diffusion generator (resumes from --work-dir)"
 DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -11,6 +11,7 @@ DATA_FILES = ("workflow/schemas/generator.schema.yaml",)  # run time reads (omni
 def add_arguments(parser) -> None:
     settings_arg(parser)
     seed_arg(parser)
+    threads_arg(parser)
     parser.add_argument("--domains", required=True, help="domains index JSON from the domain builder")
     parser.add_argument("--prompts", required=True, help="prompt cache from encode-prompts")
     parser.add_argument("--work-dir", required=True, help="resumable state (checkpoints, logs); not a declared output")
@@ -30,7 +31,9 @@ def run(args) -> int:
     from omnilidar.config import validate
     from omnilidar.generator.presets import apply_preset
     from omnilidar.generator.training import train_generator
+    from omnilidar.devices import set_threads
 
+    set_threads(args.threads)
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     if args.preset:
         settings = apply_preset(settings, args.preset)

@@ -23,7 +23,8 @@ def run(args) -> int:
     from omnilidar.config import validate
     from omnilidar.downstream.seg.label_spaces import get_label_space
     from omnilidar.downstream.seg.labeler import LABEL_SPACE, import_labeler, labeler_records, training_settings
-    from omnilidar.downstream.seg.training import set_threads, train_segmentor
+    from omnilidar.devices import set_threads
+    from omnilidar.downstream.seg.training import train_segmentor
 
     set_threads(args.threads)
     section = validate({"labeler": dict(args.settings)}, "downstream.schema.yaml", source="--settings")["labeler"]

@@ -42,7 +42,8 @@ def run(args) -> int:
     from omnilidar.downstream.seg.label_spaces import get_label_space
     from omnilidar.downstream.seg.pseudo_label import generated_records, pool_records
     from omnilidar.data.subsets import read_subset
-    from omnilidar.downstream.seg.training import set_threads, train_segmentor
+    from omnilidar.devices import set_threads
+    from omnilidar.downstream.seg.training import train_segmentor
     from omnilidar.errors import InputError
 
     set_threads(args.threads)

@@ -218,8 +218,3 @@ def train_segmentor(
     runner.logger.info(f"wrote {out}")
     return summary
 
-
-def set_threads(threads: int | None) -> None:
-    """CPU threads for torch (1 avoids OpenMP spin-waiting when jobs share cores)."""
-    if threads:
-        torch.set_num_threads(int(threads))
