@@ -26,9 +26,9 @@ TRAINERS = {"generator": "generator/*.log", "labeler": "downstream/labeler.log",
             "MinkUNet student": "downstream/train/*minkunet*.log", "SPVCNN student": "downstream/train/*spvcnn*.log"}
 
 
-def logged_steps(log: Path) -> list[tuple[int, int, float]]:
+def logged_steps(text: str) -> list[tuple[int, int, float]]:
     """(iteration, of iterations, seconds per step) of every logged training line."""
-    return [(int(i), int(n), float(t)) for i, n, t in STEP.findall(log.read_text(errors="replace"))]
+    return [(int(i), int(n), float(t)) for i, n, t in STEP.findall(text)]
 
 
 def main() -> None:
@@ -41,13 +41,13 @@ def main() -> None:
     args = ap.parse_args()
     rows, figures = [], {}
     for name, pattern in TRAINERS.items():
-        logs = sorted((args.run_dir / "logs").glob(pattern))
-        steps = {log.name: logged_steps(log) for log in logs}
+        texts = {log.name: log.read_text(errors="replace") for log in sorted((args.run_dir / "logs").glob(pattern))}
+        steps = {log: logged_steps(text) for log, text in texts.items()}
         times = [t for s in steps.values() for _, _, t in s]
         if not times:
             continue
         reached = {log: s[-1][0] for log, s in steps.items() if s}
-        diverged = {log.name: reached.get(log.name, 0) for log in logs if DIVERGED in log.read_text(errors="replace")}
+        diverged = {log: reached.get(log, 0) for log, text in texts.items() if DIVERGED in text}
         figures[name] = {"jobs": len(steps), "median_s": statistics.median(times), "min_s": min(times),
                          "max_s": max(times), "last_iteration": reached, "diverged": diverged}
         note = (f"; {len(diverged)} diverged (non-finite loss) after iteration {min(diverged.values())}-"

@@ -56,6 +56,7 @@ def pool_transform_args(parser: argparse.ArgumentParser, domain_help: str) -> No
     parser.add_argument("--out", required=True, help="folder to write (atomically): velodyne/, labels/, pool.json")
 
 
-def threads_arg(parser) -> None:
-    """``--threads``: torch's CPU threads; the workflow passes the cores Snakemake gives the job."""
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads for torch (default: torch's, every core)")
+def threads_arg(parser: argparse.ArgumentParser) -> None:
+    """``--threads``: torch's CPU threads (omnilidar.devices.set_threads); the workflow passes the
+    cores Snakemake gives the job."""
+    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch (default: 1)")

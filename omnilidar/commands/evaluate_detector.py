@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import settings_arg
+from omnilidar.commands._common import settings_arg, threads_arg
 
 HELP = "score a trained detector on a Pi3DET platform's val frames (OpenPCDet eval.py semantics, Pi3DET conversion)"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml", "workflow/schemas/detection.schema.yaml")
@@ -13,7 +13,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--checkpoint", required=True, help="detector payload (train-detector / train-box-labeler)")
     parser.add_argument("--index", required=True, help="Pi3DET dataset index")
     parser.add_argument("--split", default="val", help="split of the platform (<platform>_<split>)")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    threads_arg(parser)
     parser.add_argument("--out", required=True, help="evaluation JSON")
 
 

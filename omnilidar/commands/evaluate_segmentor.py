@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import settings_arg
+from omnilidar.commands._common import settings_arg, threads_arg
 
 HELP = "evaluate a segmentor on the official val split and/or folders of labelled scans (per-class IoU, mIoU, accuracy)"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -18,7 +18,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--subset-set", dest="subset_sets", action="append", default=[], metavar="NAME=SUBSET",
                         help="an extra set: the labelled scans of a subset list (make-subset), e.g. held-out "
                              "train scans (repeatable)")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    threads_arg(parser)
     parser.add_argument("--out", required=True, help="scores (JSON)")
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import settings_arg
+from omnilidar.commands._common import settings_arg, threads_arg
 
 HELP = "pseudo-boxes (score >= downstream.det.labeler.score_threshold) for one generated sample shard, as Pi3DET infos"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml", "workflow/schemas/detection.schema.yaml")
@@ -12,7 +12,7 @@ def add_arguments(parser) -> None:
     settings_arg(parser)
     parser.add_argument("--labeler", required=True, help="labeler checkpoint (train-box-labeler)")
     parser.add_argument("--samples", required=True, help="generated sample shard (velodyne/*.bin)")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    threads_arg(parser)
     parser.add_argument("--out", required=True, help="pseudo-box shard directory")
 
 

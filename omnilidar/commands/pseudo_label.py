@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import settings_arg
+from omnilidar.commands._common import settings_arg, threads_arg
 
 HELP = "pseudo-label one shard of generated scans (.label files in raw SemanticKITTI ids)"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -14,7 +14,7 @@ def add_arguments(parser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--samples", help="sample shard directory (velodyne/*.bin)")
     source.add_argument("--pool", help="a pool of real scans (make-subset --exclude); records accuracy against truth")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    threads_arg(parser)
     parser.add_argument("--out", required=True, help="pseudo-label shard directory (appears only when complete)")
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, segment_arg, settings_arg
+from omnilidar.commands._common import seed_arg, segment_arg, settings_arg, threads_arg
 
 HELP = ("the fixed box labeler of a Pi3DET platform: a user's OpenPCDet checkpoint (weights only) or the "
         "labeler detector trained once on 100 %% of the platform's real training frames")
@@ -19,7 +19,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--model-config", default=None,
                         help="OpenPCDet-style yaml (default: downstream.det.detectors.<labeler.detector>.config)")
     parser.add_argument("--work-dir", default="work/detection/labeler", help="resumable training state (undeclared)")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    threads_arg(parser)
     parser.add_argument("--out", required=True, help="labeler checkpoint (omnilidar detector payload)")
     segment_arg(parser)
 

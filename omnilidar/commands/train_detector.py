@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, segment_arg, settings_arg
+from omnilidar.commands._common import seed_arg, segment_arg, settings_arg, threads_arg
 
 HELP = ("train Voxel R-CNN or PV-RCNN from scratch on a label subset of a Pi3DET platform's training frames, "
         "plus pseudo-boxed generated scans for GDA")
@@ -21,7 +21,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--samples", nargs="*", default=[], help="generated sample shards (GDA)")
     parser.add_argument("--pseudo-boxes", nargs="*", default=[], help="their pseudo-box shards, same order")
     parser.add_argument("--work-dir", default="work/detection", help="resumable training state (undeclared)")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    threads_arg(parser)
     parser.add_argument("--out", required=True, help="detector checkpoint (weights-only loadable)")
     segment_arg(parser)
 

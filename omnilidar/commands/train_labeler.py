@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, segment_arg, settings_arg
+from omnilidar.commands._common import seed_arg, segment_arg, settings_arg, threads_arg
 
 HELP = "make the fixed pseudo-labeler: import downstream.labeler.checkpoint or train it on the full real train split"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -14,7 +14,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--index", nargs="?", default=None,
                         help="SemanticKITTI dataset index (its train split trains the labeler; not needed to import)")
     parser.add_argument("--work-dir", default="work/labeler", help="resumable training state (undeclared)")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    threads_arg(parser)
     parser.add_argument("--out", required=True, help="labeler checkpoint (weights-only loadable)")
     segment_arg(parser)
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnilidar.commands._common import seed_arg, segment_arg, settings_arg
+from omnilidar.commands._common import seed_arg, segment_arg, settings_arg, threads_arg
 
 HELP = "train MinkUNet or SPVCNN from scratch on a real label subset, plus pseudo-labelled generated scans for GDA"
 DATA_FILES = ("workflow/schemas/downstream.schema.yaml",)  # run time reads (omnilidar.provenance)
@@ -31,7 +31,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--lasermix", action="store_true",
                         help="LaserMix each pool scan (with --pool-labels) with a real labelled scan")
     parser.add_argument("--work-dir", default="work/segmentation", help="resumable training state (undeclared)")
-    parser.add_argument("--threads", type=int, default=1, help="CPU threads for torch")
+    threads_arg(parser)
     parser.add_argument("--out", required=True, help="segmentor checkpoint (weights-only loadable)")
     segment_arg(parser)
 
