@@ -122,6 +122,46 @@ def test_devoxelisation_and_its_gradient_equal_the_dense_interpolation_matrix():
     torch.testing.assert_close(grad, dense.T @ grad_out)
 
 
+def test_inference_reads_equal_training_reads_and_build_no_transposed_matrix(crop, monkeypatch):
+    """Without a gradient SPVCNN skips the transposed matrices and builds each stride's matrix once
+    (stride 1 is read twice); its logits equal those of a forward pass that keeps the graph."""
+    from omnilidar.segnets import spvcnn as module
+
+    built = []
+    original = module.interpolation_matrices
+    monkeypatch.setattr(module, "interpolation_matrices",
+                        lambda rows, w, n, transposed=True: built.append(transposed) or original(rows, w, n, transposed))
+    batch = collate([crop, crop[::2]], [np.ones(len(crop), np.int64), np.ones(len(crop[::2]), np.int64)])
+    model = SPVCNN(width="W16", backend="torch", generator=torch.Generator().manual_seed(0)).eval()
+    with torch.no_grad():
+        fast = model(batch)
+    assert built == [False, False, False]  # strides 1, 16, 4: no transposed matrix, stride 1 once
+    built.clear()
+    kept = model(batch)
+    assert built == [True, True, True] and kept.requires_grad
+    assert torch.equal(fast, kept.detach())
+
+
+def test_trilinear_weights_are_the_products_of_the_axis_fractions():
+    """Every corner's weight is the product over axes of f or 1 - f (corner order: first axis
+    major), renormalised over the corners present."""
+    gen = torch.Generator().manual_seed(3)
+    g = torch.stack(torch.meshgrid(*[torch.arange(4)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    keep = torch.rand(len(g), generator=gen) < 0.7
+    coords = torch.cat([torch.zeros(int(keep.sum()), 1, dtype=torch.long), g[keep]], 1).to(torch.int32)
+    x = SparseTensor(torch.zeros(len(coords), 1), coords, (4, 4, 4), 1)
+    p = torch.cat([torch.zeros(50, 1), torch.rand(50, 3, generator=gen) * 6 + 0.5], 1)
+    rows, w = trilinear_weights(x, p, 1)
+    u = p[:, 1:].double() - 0.5
+    f = (u - torch.floor(u)).float()
+    expected = torch.ones(50, 8)
+    for k, corner in enumerate([(i, j, l) for i in (0, 1) for j in (0, 1) for l in (0, 1)]):
+        for axis, side in enumerate(corner):
+            expected[:, k] *= f[:, axis] if side else 1 - f[:, axis]
+    expected = expected * (rows >= 0)
+    torch.testing.assert_close(w, expected / expected.sum(1, keepdim=True).clamp_min(1e-12))
+
+
 def test_widths_and_depths():
     m = minkunet("W32", backend="torch")
     assert m.trunk.encoder_channels == (32, 64, 128, 256) and m.classifier.in_features == 96

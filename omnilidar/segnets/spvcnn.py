@@ -96,16 +96,22 @@ def trilinear_weights(x: SparseTensor, points: torch.Tensor, stride: int,
     u = points[:, 1:].double() / stride - 0.5
     base = torch.floor(u)
     frac = (u - base).float()
-    cells = base.long()[:, None, :] + _CORNERS.to(points.device)  # (P, 8, 3)
-    batch_idx = points[:, 0].long()[:, None].expand(-1, 8)
-    rows = _corner_rows(x, batch, stride, batch_idx, cells) if batch is not None else None
+    base = base.long()
+    rows = _corner_rows(x, batch, stride, points, base) if batch is not None else None
     if rows is None:
-        rows = _lookup(x, batch_idx, cells)
-    corner = _CORNERS.to(points.device).bool()
-    w = torch.where(corner, frac[:, None, :], 1 - frac[:, None, :]).prod(-1)  # (P, 8)
+        rows = _lookup(x, points[:, 0].long()[:, None].expand(-1, 8), _corner_cells(base))
+    # Each corner's weight is the product of one factor per axis, 1 - f or f by the corner's side
+    # (corners in _CORNERS' order: first axis major).
+    sides = torch.stack([1 - frac, frac], -1)  # (P, 3, 2)
+    w = (sides[:, 0, :, None, None] * sides[:, 1, None, :, None] * sides[:, 2, None, None, :]).reshape(-1, 8)
     w = torch.where(rows >= 0, w, torch.zeros_like(w))
     w = w / w.sum(1, keepdim=True).clamp_min(1e-12)
     return rows, w
+
+
+def _corner_cells(base: torch.Tensor) -> torch.Tensor:
+    """The 8 cells ``(P, 8, 3)`` around each point, from the lowest one ``base`` ``(P, 3)``."""
+    return base[:, None, :] + _CORNERS.to(base.device)
 
 
 class _Interpolate(torch.autograd.Function):
@@ -122,32 +128,43 @@ class _Interpolate(torch.autograd.Function):
         return ctx.transposed @ grad.contiguous(), None, None
 
 
-def interpolation_matrices(rows: torch.Tensor, weights: torch.Tensor, num_voxels: int):
-    """The ``(P, N)`` interpolation matrix of ``rows``/``weights`` and its transpose, both CSR."""
+def interpolation_matrices(rows: torch.Tensor, weights: torch.Tensor, num_voxels: int, transposed: bool = True):
+    """The ``(P, N)`` interpolation matrix of ``rows``/``weights`` and its transpose (None unless
+    ``transposed``: only a gradient needs it), both CSR."""
     present = rows >= 0
     per_point = present.sum(1)
-    cols, values = rows[present], weights[present]  # point-major: rows of the matrix in order
+    cols, values = rows.masked_select(present), weights.masked_select(present)  # point-major, in matrix order
     point_ptr = torch.zeros(len(rows) + 1, dtype=torch.int64, device=rows.device)
     point_ptr[1:] = per_point.cumsum(0)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
         matrix = torch.sparse_csr_tensor(point_ptr, cols, values, (len(rows), num_voxels), check_invariants=False)
-    order = torch.argsort(cols, stable=True)
-    points = torch.arange(len(rows), device=rows.device).repeat_interleave(per_point)
-    voxel_ptr = torch.zeros(num_voxels + 1, dtype=torch.int64, device=rows.device)
-    voxel_ptr[1:] = torch.bincount(cols, minlength=num_voxels).cumsum(0)
-    transposed = torch.sparse_csr_tensor(voxel_ptr, points[order], values[order], (num_voxels, len(rows)),
-                                         check_invariants=False)
-    return matrix, transposed
+        if not transposed:
+            return matrix, None
+        # A stable sort keeps each voxel's points in point order; int32 keys sort in about half the time.
+        order = torch.argsort(cols.to(torch.int32) if num_voxels < 2**31 else cols, stable=True)
+        points = torch.arange(len(rows), device=rows.device).repeat_interleave(per_point)
+        voxel_ptr = torch.zeros(num_voxels + 1, dtype=torch.int64, device=rows.device)
+        voxel_ptr[1:] = torch.bincount(cols, minlength=num_voxels).cumsum(0)
+        return matrix, torch.sparse_csr_tensor(voxel_ptr, points[order], values[order], (num_voxels, len(rows)),
+                                               check_invariants=False)
 
 
-def devoxelize(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """Point features ``(P, C)`` interpolated from voxel features."""
+def devoxelize(x: SparseTensor, rows: torch.Tensor, weights: torch.Tensor, memo: dict | None = None) -> torch.Tensor:
+    """Point features ``(P, C)`` interpolated from voxel features.
+
+    ``memo``: a dict kept with ``rows``/``weights`` across reads of the same voxels (SPVCNN reads
+    stride 1 twice), so that their sparse matrices are built once."""
     w = weights.to(x.feats.dtype)
     if x.feats.device.type == "cpu" and x.feats.dtype in (torch.float32, torch.float64):
         # One sparse product each way: on a CPU about half the time of eight gathers, whose
         # gradient scatters 8 P rows into few voxels at the coarse strides.
-        return _Interpolate.apply(x.feats, *interpolation_matrices(rows, w, x.num_voxels))
+        memo = {} if memo is None else memo
+        grad = torch.is_grad_enabled() and x.feats.requires_grad
+        matrix, transposed = memo.get(w.dtype, (None, None))
+        if matrix is None or (grad and transposed is None):
+            matrix, transposed = memo[w.dtype] = interpolation_matrices(rows, w, x.num_voxels, transposed=grad)
+        return _Interpolate.apply(x.feats, matrix, transposed) if grad else matrix @ x.feats
     return devoxelize_by_gathers(x, rows, weights)
 
 
@@ -162,21 +179,25 @@ def devoxelize_by_gathers(x: SparseTensor, rows: torch.Tensor, weights: torch.Te
     return out
 
 
-def _corner_rows(x: SparseTensor, batch: SegBatch, stride: int, batch_idx: torch.Tensor,
-                 cells: torch.Tensor) -> torch.Tensor | None:
-    """:func:`_lookup`'s rows for the corner ``cells`` ``(P, 8, 3)``, read from the neighbours of each
-    point's own voxel; a point whose corners leave that neighbourhood (its float position rounded
-    across a cell boundary) is looked up. None without the cached maps."""
+def _corner_rows(x: SparseTensor, batch: SegBatch, stride: int, points: torch.Tensor,
+                 base: torch.Tensor) -> torch.Tensor | None:
+    """:func:`_lookup`'s rows for the 8 cells from ``base`` ``(P, 3)`` up, read from the neighbours of
+    each point's own voxel; a point whose corners leave that neighbourhood (its float position
+    rounded across a cell boundary) is looked up. None without the cached maps."""
     table, own = _neighbours(x, stride), _own_rows(x, batch, stride)
     if table is None or own is None:
         return None
-    delta = cells - x.coords[own, 1:].long()[:, None, :]  # in -1..1 on every axis, but for rounding
-    near = ((delta >= -1) & (delta <= 1)).all(-1).all(-1)
-    offset = ((delta.clamp(-1, 1) + 1) * torch.tensor([9, 3, 1], device=cells.device)).sum(-1)
-    rows = table[own[:, None], offset]
+    # Corners add 0 or 1 per axis, so all 8 lie in the 3 x 3 x 3 neighbourhood exactly when the
+    # lowest one is at -1 or 0 from the own voxel on every axis.
+    low = base - x.coords.index_select(0, own)[:, 1:].long()
+    near = ((low >= -1) & (low <= 0)).all(-1)
+    place = torch.tensor([9, 3, 1], device=base.device)
+    first = ((low.clamp(-1, 0) + 1) * place).sum(-1)  # neighbour slot of the lowest corner
+    offset = first[:, None] + (_CORNERS.to(base.device) * place).sum(-1)  # (P, 8)
+    rows = table.view(-1).index_select(0, (own[:, None] * 27 + offset).view(-1)).view(offset.shape)
     if not bool(near.all()):
         far = ~near
-        rows[far] = _lookup(x, batch_idx[far], cells[far])
+        rows[far] = _lookup(x, points[far, 0].long()[:, None].expand(-1, 8), _corner_cells(base[far]))
     return rows
 
 
@@ -269,11 +290,11 @@ class SPVCNN(nn.Module):
         t = self.trunk
         pts = batch.point_coords
         x0 = t.stem(network_input(batch))
-        interp = {}  # stride -> (rows, weights); stride 1 is read twice
+        interp = {}  # stride -> (rows, weights, memo); stride 1 is read twice
 
         def read(x: SparseTensor, stride: int) -> torch.Tensor:
             if stride not in interp:
-                interp[stride] = trilinear_weights(x, pts, stride, batch)
+                interp[stride] = (*trilinear_weights(x, pts, stride, batch), {})
             return devoxelize(x, *interp[stride])
 
         z0 = read(x0, 1)
