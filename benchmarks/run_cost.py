@@ -13,11 +13,17 @@ benchmarks/out). The jobs' own Snakemake benchmark files (benchmarks/out/**/*.ts
 and wall seconds the jobs held, in all and per folder of job kind. ``omnilidar docs`` writes
 docs/troubleshooting.md's block from the file, so the numbers there come from a measured run, not
 from hand.
+
+With ``--reference DIR`` (an earlier run of the same target in another clone) the jobs both runs
+have are compared, per ``--group NAME=GLOB`` of benchmark files (default: one group per folder):
+their wall seconds here and there and the ratio. A group whose code did not change between the two
+commits measures how fast the machine was that day; the others, that and what the change did.
 """
 
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import json
 import os
 import re
@@ -50,6 +56,30 @@ def disk_mb(path: Path) -> float:
     return round(int(out.split()[0]) / 1024, 1)
 
 
+def job_walls(run_dir: Path) -> dict[str, float]:
+    """Wall seconds of each job, by its benchmark file relative to benchmarks/out."""
+    root = run_dir / "benchmarks" / "out"
+    walls = {}
+    for tsv in sorted(root.rglob("*.tsv")):
+        lines = tsv.read_text().strip().splitlines()
+        walls[str(tsv.relative_to(root))] = float(dict(zip(lines[0].split("\t"), lines[-1].split("\t")))["s"])
+    return walls
+
+
+def against_reference(run_dir: Path, reference: Path, groups: list[str], commit: str | None) -> dict:
+    """The jobs both runs have, per group of benchmark files: wall seconds here, there, and the ratio."""
+    here, there = job_walls(run_dir), job_walls(reference)
+    common = sorted(set(here) & set(there))
+    named = [g.split("=", 1) for g in groups] or sorted({(n.rsplit("/", 1)[0],) * 2 for n in common})
+    out = {}
+    for name, pattern in named:
+        jobs = [n for n in common if fnmatch.fnmatch(n, pattern) or n.startswith(f"{pattern}/")]  # a glob or a folder
+        if jobs:
+            a, b = sum(here[n] for n in jobs), sum(there[n] for n in jobs)
+            out[name] = {"jobs": len(jobs), "wall": round(a, 1), "reference_wall": round(b, 1), "ratio": round(a / b, 3)}
+    return {"commit": commit, "groups": out}
+
+
 def job_seconds(run_dir: Path) -> dict:
     """CPU and wall seconds of the run's jobs from their benchmark files, in all and per folder."""
     groups: dict[str, dict[str, float]] = {}
@@ -66,6 +96,11 @@ def job_seconds(run_dir: Path) -> dict:
             "wall": round(sum(v["wall"] for v in groups.values()), 1), "by_folder": rounded}
 
 
+def git_commit(run_dir: Path) -> str:
+    return subprocess.run(["git", "-C", str(run_dir), "rev-parse", "--short", "HEAD"], capture_output=True,
+                          text=True).stdout.strip()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run-dir", type=Path, required=True, help="the clone the run happened in")
@@ -77,6 +112,11 @@ def main() -> None:
     ap.add_argument("--machine", default=f"a {os.cpu_count()}-core CPU machine",
                     help="where the run happened, as the docs name it (default: this machine's cores)")
     ap.add_argument("--commit", default=None, help="the run's commit where the run directory has no git history")
+    ap.add_argument("--reference", type=Path, default=None,
+                    help="an earlier run of the same target (its clone): compare the jobs both have")
+    ap.add_argument("--group", action="append", default=[],
+                    help="NAME=GLOB of benchmark files under benchmarks/out compared with --reference (repeat; "
+                         "default: one group per folder)")
     args = ap.parse_args()
     runs = []
     for target in args.after + [args.target]:
@@ -85,14 +125,16 @@ def main() -> None:
         seconds, jobs = elapsed(log)
         runs.append({"target": None if interrupted else target, "log": log.name, "elapsed_seconds": seconds,
                      "jobs": jobs})
-    commit = subprocess.run(["git", "-C", str(args.run_dir), "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip() or args.commit
+    commit = git_commit(args.run_dir) or args.commit
     doc = {"experiment": "run_cost", "target": args.target, "commit": commit, "machine": args.machine,
            "log": runs[-1]["log"],
            "elapsed_seconds": sum(r["elapsed_seconds"] for r in runs), "jobs": sum(r["jobs"] for r in runs)}
     if args.after:
         doc["runs"] = runs
     doc |= {"disk_mb": {d: disk_mb(args.run_dir / d) for d in OUTPUT_DIRS}, "job_seconds": job_seconds(args.run_dir)}
+    if args.reference:
+        doc["against_reference"] = against_reference(args.run_dir, args.reference, args.group,
+                                                     git_commit(args.reference))
     args.out.write_text(json.dumps(doc, indent=2) + "\n")
     print(json.dumps(doc, indent=2))
 

@@ -231,3 +231,44 @@ def test_step_times_reads_each_trainers_logged_steps_and_divergence(tmp_path):
     assert main(["docs", str(tmp_path / "page.md"), "--results", str(tmp_path)]) == 0
     assert "1 diverged (non-finite loss) after iteration 10-10" in (tmp_path / "page.md").read_text()
     assert "one NVIDIA H200, 16 CPUs" in (tmp_path / "page.md").read_text()
+
+
+def test_run_cost_compares_the_jobs_an_earlier_run_also_has(tmp_path):
+    """run_cost.py --reference: per group of benchmark files, the wall seconds of the jobs both runs have
+    (jobs only one run has are left out), their ratio, and a table in the page."""
+    import subprocess
+    import sys
+
+    def run(name, walls):
+        root = tmp_path / name
+        (root / ".snakemake" / "log").mkdir(parents=True)
+        (root / ".snakemake" / "log" / "a.snakemake.log").write_text(
+            "[Sat Nov 28 10:00:00 2026]\nrule x:\n    output: results/semkitti_1pct.json\nFinished jobid: 1\n"
+            "[Sat Nov 28 10:20:00 2026]\n")
+        for job, wall in walls.items():
+            tsv = root / "benchmarks" / "out" / job
+            tsv.parent.mkdir(parents=True, exist_ok=True)
+            tsv.write_text(f"s\th:m:s\tcpu_time\n{wall}\t0:00:00\t{wall}\n")
+        return root
+
+    here = run("here", {"train/minkunet_a.tsv": 150, "train/minkunet_b.tsv": 160, "train/spvcnn_a.tsv": 200,
+                        "labeler.tsv": 450, "only_here.tsv": 9})
+    there = run("there", {"train/minkunet_a.tsv": 120, "train/minkunet_b.tsv": 130, "train/spvcnn_a.tsv": 250,
+                          "labeler.tsv": 500})
+    out = tmp_path / "run_cost.json"
+    subprocess.run([sys.executable, "benchmarks/run_cost.py", "--run-dir", str(here), "--reference", str(there),
+                    "--group", "MinkUNet=train/*minkunet*", "--group", "SPVCNN=train/*spvcnn*", "--group",
+                    "labeler=labeler.tsv", "--group", "none=missing/*", "--out", str(out), "--commit", "new1234"],
+                   cwd=ROOT, check=True, capture_output=True)
+    ref = json.loads(out.read_text())["against_reference"]
+    assert ref["groups"] == {"MinkUNet": {"jobs": 2, "wall": 310.0, "reference_wall": 250.0, "ratio": 1.24},
+                             "SPVCNN": {"jobs": 1, "wall": 200.0, "reference_wall": 250.0, "ratio": 0.8},
+                             "labeler": {"jobs": 1, "wall": 450.0, "reference_wall": 500.0, "ratio": 0.9}}
+    page = tmp_path / "page.md"
+    page.write_text("<!-- results:run_cost -->\n<!-- /results:run_cost -->\n")
+    assert main(["docs", str(page), "--results", str(tmp_path)]) == 0
+    assert "| MinkUNet | 2 | 5.2 | 4.2 | 1.24 |" in page.read_text()
+    # Without groups, one per folder (or top-level file) of the jobs both runs have.
+    subprocess.run([sys.executable, "benchmarks/run_cost.py", "--run-dir", str(here), "--reference", str(there),
+                    "--out", str(out)], cwd=ROOT, check=True, capture_output=True)
+    assert set(json.loads(out.read_text())["against_reference"]["groups"]) == {"train", "labeler.tsv"}

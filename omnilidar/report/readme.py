@@ -152,6 +152,12 @@ def run_cost(doc: dict) -> str:
                   "| jobs (benchmarks/out/...) | count | CPU minutes | wall minutes |", "|---|---|---|---|"]
         by = sorted(jobs["by_folder"].items(), key=lambda kv: -kv[1]["wall"])
         lines += [f"| `{name}` | {g['jobs']} | {g['cpu'] / 60:.1f} | {g['wall'] / 60:.1f} |" for name, g in by]
+    ref = doc.get("against_reference")
+    if ref:  # the same jobs in an earlier run of the target
+        lines += ["", f"The jobs both this run and the run at {ref['commit'] or 'an earlier commit'} have, in wall "
+                      f"minutes:", "", f"| jobs | count | this run | at {ref['commit']} | ratio |", "|---|---|---|---|---|"]
+        lines += [f"| {name} | {g['jobs']} | {g['wall'] / 60:.1f} | {g['reference_wall'] / 60:.1f} | {g['ratio']:.2f} |"
+                  for name, g in ref["groups"].items()]
     return "\n".join(lines)
 
 
