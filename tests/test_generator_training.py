@@ -220,3 +220,23 @@ def test_a_segment_must_end_inside_the_training(trained, tmp_path, until):
     with pytest.raises(InputError, match=f"--until {until} must lie between 0 and the 3 iterations"):
         train_generator(settings, index, prompts, tmp_path / "work", tmp_path / "seg.json", seed=3, until=until)
     assert not (tmp_path / "seg.json").exists() and not (tmp_path / "work").exists()
+
+
+@pytest.mark.parametrize("bf16", [True, False])
+def test_cpu_training_autocasts_bf16_only_where_the_cpu_multiplies_it_natively(trained, tmp_path, monkeypatch, bf16):
+    """training.bf16 on a CPU: the denoiser's convolutions run in bf16 where the CPU has native bf16
+    (faked here both ways), in fp32 otherwise; the summary says which."""
+    from omnilidar.generator import training
+
+    _, settings, index, prompts, _ = trained
+    settings = json.loads(json.dumps(settings))
+    settings["training"].update(bf16=True, iterations=1)
+    monkeypatch.setattr(training, "cpu_has_native_bf16", lambda: bf16)
+    seen = set()
+    original = torch.nn.Conv2d.forward
+    monkeypatch.setattr(torch.nn.Conv2d, "forward", lambda self, x: seen.add((out := original(self, x)).dtype) or out)
+    summary = train_generator(settings, index, prompts, tmp_path / "work", tmp_path / "ckpt.pt", seed=3)
+    assert summary["precision"] == ("bf16 autocast" if bf16 else "fp32")
+    assert seen == ({torch.bfloat16} if bf16 else {torch.float32})
+    final = torch.load(tmp_path / "ckpt.pt", map_location="cpu", weights_only=True)
+    assert all(v.dtype != torch.bfloat16 for v in final["state_dict"].values())

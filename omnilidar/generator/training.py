@@ -1,7 +1,8 @@
 """Generator training with mmengine's Runner.
 
 What the Runner provides here: the iteration loop, AdamW through an optimizer
-wrapper (gradient clipping; ``AmpOptimWrapper`` with bf16 autocast on CUDA), a
+wrapper (gradient clipping; ``AmpOptimWrapper`` with bf16 autocast on CUDA; on a CPU with native
+bf16 the loss runs under CPU autocast), a
 linear warm-up, EMA of the weights (``EMAHook``), resumable checkpoints in the
 work directory, DDP when launched with torchrun (``launcher="pytorch"``) and log
 lines with loss, learning rate, time per step and ETA.
@@ -38,6 +39,7 @@ import torch
 
 from omnilidar.checkpoints import (checkpoint_iteration, iteration_hooks, job_provenance, relative_marker,
                                    resumable_runner_args, resume_point, weights_only_hooks)
+from omnilidar.devices import cpu_has_native_bf16
 from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
@@ -79,7 +81,7 @@ def trajectory_settings(settings: dict, distilling: bool = False) -> dict:
 
 
 def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, prompt_mask: torch.Tensor, seed: int,
-                         teacher: torch.nn.Module | None = None):
+                         teacher: torch.nn.Module | None = None, cpu_bf16: bool = False):
     """The mmengine adapter: ``loss`` mode is :func:`omnilidar.generator.diffusion.epsilon_loss`
     with noise drawn from a generator keyed by (seed, rank, iteration).
 
@@ -88,7 +90,10 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
     first learns the teacher's denoiser (compression), then the rounds; round 0's teacher is the
     trained generator, every later round's a frozen copy of the student as the previous round
     left it. That copy and its round are part of the model's state, so a checkpoint resumes with
-    the teacher of its round."""
+    the teacher of its round.
+
+    ``cpu_bf16``: the loss of a model on the CPU runs under bf16 autocast (on CUDA the optimizer
+    wrapper autocasts)."""
     from mmengine.dist import get_rank
     from mmengine.model import BaseModel
 
@@ -121,6 +126,10 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
         def forward(self, image=None, domain=None, prompt=None, mode: str = "loss"):
             if mode != "loss":
                 raise ValueError(f"DiffusionModel supports mode='loss' only, got {mode!r}")
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=cpu_bf16 and image.device.type == "cpu"):
+                return self.loss(image, domain, prompt)
+
+        def loss(self, image, domain, prompt):
             gen = torch.Generator(device=image.device)
             gen.manual_seed(int(rng_for(self.seed, get_rank(), self.iteration).integers(2**63 - 1)))
             tokens, mask = self.prompt_tokens[prompt], self.prompt_mask[prompt]
@@ -351,9 +360,12 @@ def train_generator(
         frozen = teacher_weights(teacher, settings, names, cache)
         if own["model"] == settings["model"]:
             denoiser.load_state_dict(frozen.state_dict())
-    model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen)
-
     cuda = torch.cuda.is_available()
+    # bf16 autocast on CUDA through the optimizer wrapper; on a CPU only where it multiplies bf16
+    # natively (a generator step at 64 x 128, batch 8, one thread: 0.79 s against 1.16 s in fp32).
+    cpu_bf16 = bool(tr["bf16"]) and not cuda and cpu_has_native_bf16()
+    model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen, cpu_bf16=cpu_bf16)
+
     lr = tr["lr"] if dist is None else dist["lr"]
     optimizer = dict(type="AdamW", lr=lr, betas=tuple(tr["betas"]), weight_decay=tr["weight_decay"])
     optim_wrapper = dict(type="OptimWrapper", optimizer=optimizer)
@@ -403,6 +415,7 @@ def train_generator(
     runner.logger.info(
         f"omnilidar {what}: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
         f"{len(dataset)} scans, strategy {tr['strategy']}, {iterations} iterations"
+        + (", bf16 autocast on the CPU" if cpu_bf16 else "")
         + (f" (this segment up to {stop})" if until else "")
         + (f", resuming at iteration {skip} from {resume_from.name}" if resume_from else ", from scratch")
     )
@@ -423,6 +436,7 @@ def train_generator(
         "parameters": count_parameters(denoiser),
         "work_dir": str(run_dir),
         "resumed_from": skip,
+        "precision": "bf16 autocast" if cuda and tr["bf16"] or cpu_bf16 else "fp32",
         **cost,
     }
     if until is not None:
