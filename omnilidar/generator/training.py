@@ -362,7 +362,8 @@ def train_generator(
             denoiser.load_state_dict(frozen.state_dict())
     cuda = torch.cuda.is_available()
     # bf16 autocast on CUDA through the optimizer wrapper; on a CPU only where it multiplies bf16
-    # natively (a generator step at 64 x 128, batch 8, one thread: 0.79 s against 1.16 s in fp32).
+    # natively: there the quick start's training job takes 0.7x its fp32 time (benchmarks/
+    # bench_train_precision.py: both runs at once, so the machine's speed is the same for both).
     cpu_bf16 = bool(tr["bf16"]) and not cuda and cpu_has_native_bf16()
     model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen, cpu_bf16=cpu_bf16)
 
