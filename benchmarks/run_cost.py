@@ -59,11 +59,13 @@ def disk_mb(path: Path) -> float:
 def job_walls(run_dir: Path) -> dict[str, float]:
     """Wall seconds of each job, by its benchmark file relative to benchmarks/out."""
     root = run_dir / "benchmarks" / "out"
-    walls = {}
-    for tsv in sorted(root.rglob("*.tsv")):
-        lines = tsv.read_text().strip().splitlines()
-        walls[str(tsv.relative_to(root))] = float(dict(zip(lines[0].split("\t"), lines[-1].split("\t")))["s"])
-    return walls
+    return {str(tsv.relative_to(root)): float(bench_row(tsv)["s"]) for tsv in sorted(root.rglob("*.tsv"))}
+
+
+def bench_row(tsv: Path) -> dict[str, str]:
+    """A Snakemake benchmark file's last row, by column name."""
+    lines = tsv.read_text().strip().splitlines()
+    return dict(zip(lines[0].split("\t"), lines[-1].split("\t")))
 
 
 def against_reference(run_dir: Path, reference: Path, groups: list[str], commit: str | None) -> dict:
@@ -84,8 +86,7 @@ def job_seconds(run_dir: Path) -> dict:
     """CPU and wall seconds of the run's jobs from their benchmark files, in all and per folder."""
     groups: dict[str, dict[str, float]] = {}
     for tsv in sorted((run_dir / "benchmarks" / "out").rglob("*.tsv")):
-        lines = tsv.read_text().strip().splitlines()
-        row = dict(zip(lines[0].split("\t"), lines[-1].split("\t")))
+        row = bench_row(tsv)
         group = str(tsv.parent.relative_to(run_dir / "benchmarks" / "out"))
         g = groups.setdefault(group, {"jobs": 0, "cpu": 0.0, "wall": 0.0})
         g["jobs"] += 1

@@ -362,8 +362,8 @@ def train_generator(
             denoiser.load_state_dict(frozen.state_dict())
     cuda = torch.cuda.is_available()
     # bf16 autocast on CUDA through the optimizer wrapper; on a CPU only where it multiplies bf16
-    # natively: there the quick start's training job takes 0.7x its fp32 time (benchmarks/
-    # bench_train_precision.py: both runs at once, so the machine's speed is the same for both).
+    # natively: racing both precisions at once, bf16 took 0.8x the fp32 time in the median, though
+    # the races disagreed (benchmarks/bench_train_precision.py, docs/benchmarks.md).
     cpu_bf16 = bool(tr["bf16"]) and not cuda and cpu_has_native_bf16()
     model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen, cpu_bf16=cpu_bf16)
 

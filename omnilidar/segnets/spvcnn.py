@@ -99,7 +99,7 @@ def trilinear_weights(x: SparseTensor, points: torch.Tensor, stride: int,
     base = base.long()
     rows = _corner_rows(x, batch, stride, points, base) if batch is not None else None
     if rows is None:
-        rows = _lookup(x, points[:, 0].long()[:, None].expand(-1, 8), _corner_cells(base))
+        rows = _lookup_corners(x, points, base)
     # Each corner's weight is the product of one factor per axis, 1 - f or f by the corner's side
     # (corners in _CORNERS' order: first axis major).
     sides = torch.stack([1 - frac, frac], -1)  # (P, 3, 2)
@@ -109,9 +109,9 @@ def trilinear_weights(x: SparseTensor, points: torch.Tensor, stride: int,
     return rows, w
 
 
-def _corner_cells(base: torch.Tensor) -> torch.Tensor:
-    """The 8 cells ``(P, 8, 3)`` around each point, from the lowest one ``base`` ``(P, 3)``."""
-    return base[:, None, :] + _CORNERS.to(base.device)
+def _lookup_corners(x: SparseTensor, points: torch.Tensor, base: torch.Tensor) -> torch.Tensor:
+    """:func:`_lookup` of the 8 cells ``(P, 8)`` from each point's lowest corner ``base`` ``(P, 3)`` up."""
+    return _lookup(x, points[:, 0].long()[:, None].expand(-1, 8), base[:, None, :] + _CORNERS.to(base.device))
 
 
 class _Interpolate(torch.autograd.Function):
@@ -197,7 +197,7 @@ def _corner_rows(x: SparseTensor, batch: SegBatch, stride: int, points: torch.Te
     rows = table.view(-1).index_select(0, (own[:, None] * 27 + offset).view(-1)).view(offset.shape)
     if not bool(near.all()):
         far = ~near
-        rows[far] = _lookup(x, points[far, 0].long()[:, None].expand(-1, 8), _corner_cells(base[far]))
+        rows[far] = _lookup_corners(x, points[far], base[far])
     return rows
 
 
