@@ -3,6 +3,8 @@ reruns when a downstream or a generator setting changes (dry runs)."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import yaml
 
@@ -132,8 +134,10 @@ def test_importing_a_labeler_is_a_small_cpu_job(workdir):
     trained = snakemake(workdir, "--dry-run", "data/labeler/semantickitti.pt").stdout
     imported = snakemake(workdir, "--dry-run", "data/labeler/semantickitti.pt",
                          "--config", 'downstream={"labeler": {"checkpoint": "user_labeler.pt"}}').stdout
-    # Its schedule: 600 steps x 2 scans x 0.09 s per scan-step on a GPU, x 1.5 + 10 min set-up.
-    assert "runtime=13, cpus_per_task=1, slurm_partition=gpu, gpu=1" in trained
+    # Its schedule (config.yaml's steps x 2 scans x 0.09 s per scan-step on a GPU), x 1.5 + 10 min set-up.
+    steps = yaml.safe_load((workdir / "config" / "config.yaml").read_text())["downstream"]["labeler"]["schedule"]["iterations"]
+    minutes = math.ceil(steps * 2 * 0.09 * 1.5 / 60 + 10)
+    assert f"runtime={minutes}, cpus_per_task=1, slurm_partition=gpu, gpu=1" in trained
     assert "runtime=15, cpus_per_task=1, slurm_partition=cpu, mem_mb=4000" in imported
     assert "gpu=" not in imported.split("rule train_labeler:")[-1] and "input: user_labeler.pt" in imported
 

@@ -36,7 +36,8 @@ def test_why_names_the_changed_setting_and_code_file_of_each_job(tmp_path):
     wd = copy_workflow(tmp_path / "wf")
     run_with_fake_cli(wd, tmp_path / "bin", TARGET, "--configfile", "config/test.yaml")
     cfg = yaml.safe_load((wd / "config" / "test.yaml").read_text())
-    cfg["downstream"]["schedule"] = {"iterations": 3}  # config.yaml's 200 otherwise
+    configured = yaml.safe_load((wd / "config" / "config.yaml").read_text())["downstream"]["schedule"]["iterations"]
+    cfg["downstream"]["schedule"] = {"iterations": 3}  # config.yaml's otherwise
     (wd / "changed.yaml").write_text(yaml.safe_dump(cfg))
     fog = wd / "omnilidar" / "domains" / "effects" / "fog.py"
     fog.write_text(fog.read_text() + "\n_EDITED = True\n")
@@ -54,7 +55,7 @@ def test_why_names_the_changed_setting_and_code_file_of_each_job(tmp_path):
         elif line.startswith("    ") and current:
             blocks[current].append(line.strip())
     train = next(v for k, v in blocks.items() if k.endswith("minkunet_1pct_real.pt"))
-    assert "setting schedule.iterations: 200 -> 3" in train, text
+    assert f"setting schedule.iterations: {configured} -> 3" in train, text
     fog_build = next(v for k, v in blocks.items() if k.startswith("data/domains/fog/"))
     assert "code omnilidar/domains/effects/fog.py changed" in fog_build, text
     vehicle = [v for k, v in blocks.items() if k.startswith("data/domains/vehicle/")]
