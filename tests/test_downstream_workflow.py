@@ -8,7 +8,7 @@ import math
 import pytest
 import yaml
 
-from workflow_helpers import copy_workflow, plan_with_change, planned_jobs, synthesized_shards
+from workflow_helpers import copy_workflow, embedded_default, plan_with_change, planned_jobs, synthesized_shards
 
 # Used only while rules/generator.smk is not in the checkout: the sampling rule's
 # contract (rule sample_domain, sample_shards(domain)) with the generator's settings
@@ -135,7 +135,7 @@ def test_importing_a_labeler_is_a_small_cpu_job(workdir):
     imported = snakemake(workdir, "--dry-run", "data/labeler/semantickitti.pt",
                          "--config", 'downstream={"labeler": {"checkpoint": "user_labeler.pt"}}').stdout
     # Its schedule (config.yaml's steps x 2 scans x 0.09 s per scan-step on a GPU), x 1.5 + 10 min set-up.
-    steps = yaml.safe_load((workdir / "config" / "config.yaml").read_text())["downstream"]["labeler"]["schedule"]["iterations"]
+    steps = embedded_default(workdir)["downstream"]["labeler"]["schedule"]["iterations"]
     minutes = math.ceil(steps * 2 * 0.09 * 1.5 / 60 + 10)
     assert f"runtime={minutes}, cpus_per_task=1, slurm_partition=gpu, gpu=1" in trained
     assert "runtime=15, cpus_per_task=1, slurm_partition=cpu, mem_mb=4000" in imported

@@ -10,7 +10,7 @@ import sys
 import yaml
 
 from omnilidar.rerun_reasons import params_changes, reason_in_words, settings_changes
-from workflow_helpers import copy_workflow, run_with_fake_cli
+from workflow_helpers import copy_workflow, embedded_default, run_with_fake_cli
 
 TARGET = "results/semkitti_1pct.json"
 
@@ -36,7 +36,7 @@ def test_why_names_the_changed_setting_and_code_file_of_each_job(tmp_path):
     wd = copy_workflow(tmp_path / "wf")
     run_with_fake_cli(wd, tmp_path / "bin", TARGET, "--configfile", "config/test.yaml")
     cfg = yaml.safe_load((wd / "config" / "test.yaml").read_text())
-    configured = yaml.safe_load((wd / "config" / "config.yaml").read_text())["downstream"]["schedule"]["iterations"]
+    configured = embedded_default(wd)["downstream"]["schedule"]["iterations"]
     cfg["downstream"]["schedule"] = {"iterations": 3}  # config.yaml's otherwise
     (wd / "changed.yaml").write_text(yaml.safe_dump(cfg))
     fog = wd / "omnilidar" / "domains" / "effects" / "fog.py"

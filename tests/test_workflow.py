@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from omnilidar.config import load_config
-from workflow_helpers import ROOT, copy_workflow, planned_jobs, rerun_reasons, snakemake, synthesized_shards
+from workflow_helpers import ROOT, copy_workflow, embedded_default, planned_jobs, rerun_reasons, snakemake, synthesized_shards
 
 TINY = "config/test.yaml"
 DATASETS = ("semantickitti", "kitti360", "pi3det", "nuscenes")
@@ -208,7 +208,7 @@ def test_one_gpu_profile_plans_full_resolution_and_runs_tiny_on_the_cpu(tmp_path
     labeler = next(line for line in out.splitlines() if "omnilidar train-labeler" in line)
     assert '"width": "W32"' in labeler and '"iterations": 1000' in labeler
     students = [line for line in out.splitlines() if "omnilidar train-segmentor" in line]
-    default = yaml.safe_load((wd / "config" / "config.yaml").read_text())["downstream"]["schedule"]["iterations"]
+    default = embedded_default(wd)["downstream"]["schedule"]["iterations"]
     assert students and all(f'"iterations": {default}' in line and '"voxel_size": 0.3' in line for line in students)
     assert all('"device": "auto"' in line for line in students + [labeler])
     assert "omnilidar round-trip-pool vehicle" in out and '"width": 1024' in out.split("round-trip-pool")[1][:600]

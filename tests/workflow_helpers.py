@@ -26,6 +26,13 @@ def copy_workflow(dest: Path) -> Path:
     return dest
 
 
+def embedded_default(workdir: Path) -> dict:
+    """The workflow copy's config/config.yaml (the embedded default), as written."""
+    import yaml
+
+    return yaml.safe_load((workdir / "config" / "config.yaml").read_text())
+
+
 def limits_overlay(folder: Path, gpu_runtime: str, cpu_runtime: str, extra: str = "") -> Path:
     """A config overlay pointing resources.partition_config at a partition file with these time
     limits (and a typical node's memory, CPUs and GPUs); ``extra``: more resources keys."""
