@@ -193,6 +193,25 @@ def test_changed_scan_contents_start_fresh_and_more_iterations_resume(tmp_path, 
     assert "resuming at iteration 3" in capsys.readouterr().out
 
 
+def test_fewer_iterations_than_the_work_dir_holds_train_afresh(tmp_path, capsys):
+    """Lowering the schedule (as the embedded default did, 200 -> 120) must not resume a checkpoint
+    that is already past the new end: the run starts over and its weights equal a fresh run's."""
+    real = records_from_entries(_write_sequence(tmp_path / "train", 3, 0), "semantickitti")
+    inputs = {"scans": tmp_path / "train"}
+    train_segmentor(_settings(iterations=4), "minkunet", real, [], SPACE, tmp_path / "long.pt", tmp_path / "work",
+                    seed=0, inputs=inputs)
+    capsys.readouterr()
+    shorter = train_segmentor(_settings(iterations=2), "minkunet", real, [], SPACE, tmp_path / "short.pt",
+                              tmp_path / "work", seed=0, inputs=inputs)
+    assert shorter["resumed_from"] == 0 and shorter["iterations"] == 2
+    assert "past the 2 asked for" in capsys.readouterr().out
+    fresh = train_segmentor(_settings(iterations=2), "minkunet", real, [], SPACE, tmp_path / "fresh.pt",
+                            tmp_path / "work_fresh", seed=0, inputs=inputs)
+    a = torch.load(tmp_path / "short.pt", weights_only=True)["state_dict"]
+    b = torch.load(tmp_path / "fresh.pt", weights_only=True)["state_dict"]
+    assert fresh["resumed_from"] == 0 and all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_evaluation_logs_progress_lines(trained, capsys):
     """Long evaluations report done/total, seconds per scan and an ETA in their logs."""
     root, real, val, out, summary = trained
