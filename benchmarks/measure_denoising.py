@@ -1,0 +1,108 @@
+"""How well trained generators denoise, per noise level, against the domain's mean image.
+
+    python benchmarks/measure_denoising.py --domains data/domains/index.json \
+        --prompts data/generator/prompts.pt --generator data/generator/full/model.pt \
+        --generator data/generator/attempt-budget1000/model.pt --domain Vehicle
+
+Each of the domain's training scans is noised at diffusion times t (--times) with --noise-seeds
+seeded draws; the generator predicts x0 (clamped, as its samplers do) and the error is the mean
+squared error over all pixels of both channels. The reference is the domain's mean image, the
+best prediction that knows nothing but the domain: where a generator's error is above it (ratio
+> 1), it has not yet learned the domain's coarse layout at that noise level, and its samplers,
+which decide that layout at high noise, cannot draw it. A network that fits its training scans
+less well than their mean at high noise is short of training, not of capacity.
+Prints the ratio per generator and time, mean and spread over the noise seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import bench_record
+from omnilidar.generator.checkpoint import load_generator
+from omnilidar.generator.data import load_range_image, read_domains_index
+from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, predict_x0
+from omnilidar.generator.text import load_prompt_cache
+
+
+def denoising_errors(denoiser, payload: dict, images: torch.Tensor, domain_name: str, tokens, mask,
+                     times: list[float], seeds: list[int], batch: int) -> dict[float, list[float]]:
+    """{t: [x0 MSE per noise seed]} of ``denoiser`` on ``images`` (N, 2, H, W)."""
+    d = payload["config"]["diffusion"]
+    schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
+    domain = torch.full((images.shape[0],), payload["domains"].index(domain_name), dtype=torch.long)
+    out = {}
+    with torch.no_grad():
+        for t in times:
+            logsnr = schedule.logsnr(torch.tensor(t, dtype=torch.float32))
+            alpha, sigma = alpha_sigma(logsnr)
+            errors = []
+            for seed in seeds:
+                noise = torch.randn(images.shape, generator=torch.Generator().manual_seed(seed))
+                x_t = alpha * images + sigma * noise
+                squared = 0.0
+                for i in range(0, len(images), batch):
+                    sl = slice(i, i + batch)
+                    n = x_t[sl].shape[0]
+                    eps = denoiser(x_t[sl], logsnr.expand(n), domain[sl], tokens.expand(n, -1, -1), mask.expand(n, -1))
+                    squared += float((predict_x0(x_t[sl], eps, logsnr.expand(n)) - images[sl]).square().sum())
+                errors.append(squared / images.numel())
+            out[t] = errors
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--domains", required=True, help="data/domains/index.json")
+    ap.add_argument("--prompts", required=True, help="data/generator/prompts.pt")
+    ap.add_argument("--generator", action="append", required=True, help="trained generator checkpoint (repeat)")
+    ap.add_argument("--domain", default="Vehicle")
+    ap.add_argument("--times", type=float, nargs="+", default=[0.1, 0.3, 0.5, 0.7, 0.8, 0.9, 0.97])
+    ap.add_argument("--noise-seeds", type=int, default=3)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--threads", type=int, default=None)
+    bench_record.out_arg(ap)
+    args = ap.parse_args()
+    name = args.domain
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    domains = read_domains_index(args.domains)
+    if name not in domains:
+        raise SystemExit(f"{args.domains}: no domain {name!r} (has {', '.join(domains)})")
+    cache = load_prompt_cache(args.prompts)
+    entry = cache["domains"][name]
+    tokens, mask = entry["tokens"][0].float(), entry["mask"][0].bool()  # the first prompt, as sampling uses
+    seeds = list(range(args.noise_seeds))
+    rows, figures = [], {"domain": name, "times": args.times, "noise_seeds": seeds, "generators": []}
+    images = None
+    for path in args.generator:
+        denoiser, payload = load_generator(path)
+        shape = (payload["config"]["range_image"]["height"], payload["config"]["range_image"]["width"])
+        if images is None:
+            images = torch.from_numpy(np.stack([load_range_image(f, shape) for f in domains[name]["files"]]))
+            mean_image = images.mean(dim=0, keepdim=True)
+            baseline = float((images - mean_image).square().mean())
+            figures |= {"scans": len(images), "mean_image_mse": baseline}
+            print(f"{name}: {len(images)} training scans; the mean image's MSE {baseline:.4f}")
+        iterations = payload["config"]["training"]["iterations"]
+        errors = denoising_errors(denoiser, payload, images, name, tokens, mask, args.times, seeds, args.batch)
+        ratios = {t: [e / baseline for e in errs] for t, errs in errors.items()}
+        row = {"generator": Path(path).parent.name, "iterations": str(iterations)}
+        for t in args.times:
+            spread = statistics.stdev(ratios[t]) if len(seeds) > 1 else 0.0
+            row[f"t = {t:g}"] = f"{statistics.mean(ratios[t]):.2f} +- {spread:.2f}"
+        rows.append(row)
+        figures["generators"].append({"checkpoint": str(path), "iterations": iterations,
+                                      "mse": {str(t): e for t, e in errors.items()},
+                                      "ratio_to_mean_image": {str(t): r for t, r in ratios.items()}})
+        print("  ".join(f"{k} {v}" for k, v in row.items()), flush=True)
+    bench_record.write(args.out, rows, figures, columns=["generator", "iterations", *(f"t = {t:g}" for t in args.times)])
+
+
+if __name__ == "__main__":
+    main()
