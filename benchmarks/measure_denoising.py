@@ -9,8 +9,9 @@ seeded draws; the generator predicts x0 (clamped, as its samplers do) and the er
 squared error over all pixels of both channels. The reference is the domain's mean image, the
 best prediction that knows nothing but the domain: where a generator's error is above it (ratio
 > 1), it has not yet learned the domain's coarse layout at that noise level, and its samplers,
-which decide that layout at high noise, cannot draw it. A network that fits its training scans
-less well than their mean at high noise is short of training, not of capacity.
+which decide that layout at high noise, cannot draw it. The mean image is a constant per domain, so
+a network that fits its own training scans less well than it at high noise is short of training
+(or of loss weight at those levels), not of capacity.
 Prints the ratio per generator and time, mean and spread over the noise seeds.
 """
 
