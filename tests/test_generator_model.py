@@ -289,3 +289,41 @@ def test_crop_width_must_survive_the_downsampling():
     check_crop_width(s)
     s["training"]["crop_width"] = 1000  # wider than the image: full images
     check_crop_width(s)
+
+
+def test_v_uniform_is_the_epsilon_error_seen_through_alpha():
+    """loss_weighting v_uniform: the unweighted error of the head's own v output, which for a v_skip
+    head is the epsilon error divided by alpha^2 (eps = sigma x_t + alpha v), computed without it."""
+    from omnilidar.generator.diffusion import epsilon_loss
+    from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
+
+    torch.manual_seed(0)
+    net = build_denoiser(tiny_settings(), text_dim=12, num_domains=3)
+    for p in net.parameters():
+        p.data.add_(0.05 * torch.randn_like(p))
+    net = net.eval()
+    dom, tok, mask = _cond(1)
+    image = torch.rand(1, 2, 16, 64) * 2 - 1
+    sched = CosineLogSNRSchedule()
+    with torch.no_grad():
+        v = epsilon_loss(net, image, dom, tok, mask, sched, 5.0, torch.Generator().manual_seed(2),
+                         weighting="v_uniform")
+        eps = epsilon_loss(net, image, dom, tok, mask, sched, 0.0, torch.Generator().manual_seed(2))
+        min_snr = epsilon_loss(net, image, dom, tok, mask, sched, 5.0, torch.Generator().manual_seed(2))
+    t = torch.rand(1, generator=torch.Generator().manual_seed(2))  # the loss's first draw
+    alpha, _ = alpha_sigma(sched.logsnr(t))
+    assert 0.3 < alpha < 0.95  # a middle noise level: the epsilon side loses no precision in fp32
+    assert torch.isclose(v, eps / alpha[0] ** 2, rtol=1e-4)
+    assert not torch.isclose(v, min_snr, rtol=1e-2)
+
+
+def test_v_uniform_needs_a_head_that_outputs_v():
+    from omnilidar.errors import InputError
+    from omnilidar.generator.training import check_loss_weighting
+
+    s = tiny_settings()
+    s["diffusion"].update(loss_weighting="v_uniform", epsilon_output="direct")
+    with pytest.raises(InputError, match="loss_weighting v_uniform needs epsilon_output v_skip"):
+        check_loss_weighting(s)
+    s["diffusion"]["epsilon_output"] = "v_skip"
+    check_loss_weighting(s)

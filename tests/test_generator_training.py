@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import pickle
 import shutil
@@ -210,6 +211,18 @@ def test_training_on_azimuth_windows_gives_a_full_sweep_generator(tmp_path):
     vehicle = torch.load(prompts, weights_only=True)["domains"]["Vehicle"]
     images = generate(denoiser, 0, vehicle["tokens"][0], vehicle["mask"][0], [0, 1], (16, 64), steps=2)
     assert images.shape == (2, 2, 16, 64) and torch.isfinite(images).all()
+
+
+def test_loss_weighting_reaches_the_trainer(trained, tmp_path):
+    """diffusion.loss_weighting v_uniform trains other weights than min-SNR from the same seed, and
+    the checkpoint records it (so a changed weighting is a changed generator)."""
+    root, settings, index, prompts, summary = trained
+    v = copy.deepcopy(settings)
+    v["diffusion"]["loss_weighting"] = "v_uniform"
+    other = train_generator(v, index, prompts, tmp_path / "work", tmp_path / "v.pt", seed=3)
+    assert other["weights_digest"] != summary["weights_digest"]
+    assert torch.load(tmp_path / "v.pt", weights_only=True)["config"]["diffusion"]["loss_weighting"] == "v_uniform"
+    assert settings["diffusion"]["loss_weighting"] == "min_snr"  # the default
 
 
 @pytest.mark.parametrize("until", [0, 3, 7])

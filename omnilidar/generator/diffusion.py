@@ -37,8 +37,16 @@ def azimuth_windows(width: int, crop_width: int, batch: int, generator: torch.Ge
 
 def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor, tokens: torch.Tensor,
                  mask: torch.Tensor, schedule: CosineLogSNRSchedule, gamma: float,
-                 generator: torch.Generator, crop_width: int | None = None) -> torch.Tensor:
-    """Min-SNR-gamma weighted epsilon MSE of one batch at t ~ U(0, 1); t and epsilon come from ``generator``.
+                 generator: torch.Generator, crop_width: int | None = None,
+                 weighting: str = "min_snr") -> torch.Tensor:
+    """The denoising loss of one batch at t ~ U(0, 1); t and epsilon come from ``generator``.
+
+    ``weighting``: ``min_snr`` = the min-SNR-gamma weighted epsilon MSE; ``v_uniform`` = the
+    unweighted MSE of a v_skip network's own output against v = alpha eps - sigma x0, in fp32.
+    In x0 terms min-SNR weighs an error at noise level SNR by min(SNR, gamma), next to nothing
+    at high noise, where samplers decide a scan's layout; v_uniform weighs it by SNR + 1, at
+    least 1 (and its target is not rounded through bf16 epsilon, which at high noise is almost
+    all sigma x_t).
 
     With ``crop_width`` each scan is trained on one azimuth window of that many columns
     (start drawn from ``generator`` first); the denoiser sees the window's true beam
@@ -52,8 +60,13 @@ def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.T
     t = torch.rand(b, generator=generator, device=image.device, dtype=torch.float32)
     eps = torch.randn(image.shape, generator=generator, device=image.device, dtype=torch.float32)
     x_t, logsnr = noised(image, t, eps, schedule)
-    pred = denoiser(x_t, logsnr, domain, tokens, mask) if columns is None else \
-        denoiser(x_t, logsnr, domain, tokens, mask, columns=columns)
+    raw = weighting == "v_uniform"
+    extra = ({} if columns is None else {"columns": columns}) | ({"raw_output": True} if raw else {})
+    pred = denoiser(x_t, logsnr, domain, tokens, mask, **extra)
+    if raw:
+        alpha, sigma = alpha_sigma(logsnr)
+        v = alpha[:, None, None, None] * eps - sigma[:, None, None, None] * image.float()
+        return (pred.float() - v).square().mean()
     per_scan = (pred.float() - eps).square().mean(dim=(1, 2, 3))
     return (min_snr_weight(logsnr, gamma) * per_scan).mean()
 

@@ -104,6 +104,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             d = settings["diffusion"]
             self.schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
             self.gamma = float(d["min_snr_gamma"])
+            self.weighting = d["loss_weighting"]
             self.crop_width = settings["training"].get("crop_width")
             self.register_buffer("prompt_tokens", prompt_tokens.float(), persistent=False)
             self.register_buffer("prompt_mask", prompt_mask.bool(), persistent=False)
@@ -135,7 +136,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             tokens, mask = self.prompt_tokens[prompt], self.prompt_mask[prompt]
             if self.teacher is None:
                 loss = epsilon_loss(self.denoiser, image, domain, tokens, mask, self.schedule, self.gamma, gen,
-                                    crop_width=self.crop_width)
+                                    crop_width=self.crop_width, weighting=self.weighting)
                 return {"loss": loss}
             dist = settings["distillation"]
             args = (image, domain, tokens, mask, self.schedule)
@@ -264,6 +265,14 @@ def check_crop_width(settings: dict) -> None:
                                f"(the UNet halves the width {down.bit_length() - 1} times)")
 
 
+def check_loss_weighting(settings: dict) -> None:
+    """v_uniform trains the network's own v output, which only a v_skip head has."""
+    d = settings["diffusion"]
+    if d["loss_weighting"] == "v_uniform" and d["epsilon_output"] != "v_skip":
+        raise InputError(None, f"generator.diffusion.loss_weighting v_uniform needs epsilon_output v_skip "
+                               f"(the head then outputs v), not {d['epsilon_output']!r}")
+
+
 def teacher_weights(path: str | Path, settings: dict, names: list[str], cache: dict) -> torch.nn.Module:
     """The trained generator to distill, checked against the student's settings and inputs."""
     frozen, payload = load_generator(path)
@@ -323,6 +332,7 @@ def train_generator(
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
+    check_loss_weighting(settings)
     domains = read_domains_index(domains_index)
     names = list(domains)
     cache = load_prompt_cache(prompts_path)

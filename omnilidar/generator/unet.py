@@ -260,9 +260,11 @@ class EfficientUNet(nn.Module):
         tokens: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
         columns: torch.Tensor | None = None,
+        raw_output: bool = False,
     ) -> torch.Tensor:
         """``columns`` (B, W') selects, per scan, the image columns ``x`` holds (an azimuth
-        window in training); None = ``x`` is the full sweep."""
+        window in training); None = ``x`` is the full sweep. ``raw_output``: the head's output
+        before it becomes epsilon (v for ``v_skip``; the loss of ``loss_weighting: v_uniform``)."""
         b = x.shape[0]
         if self.cfg.cross_attention and (tokens is None or mask is None):
             raise ValueError("this denoiser is text-conditioned: pass prompt tokens and mask")
@@ -288,7 +290,7 @@ class EfficientUNet(nn.Module):
         for level, up in zip(self.dec, self.up):
             h = up(level(torch.cat([h, skips.pop()], dim=1), emb, tokens, mask, domain))
         out = self.head(F.silu(self.head_norm(h)))
-        if self.cfg.epsilon_output == "direct":
+        if self.cfg.epsilon_output == "direct" or raw_output:
             return out
         # v_skip: eps = sigma x_t + alpha F. The output is still epsilon (same loss and
         # samplers), but near t = 1 (alpha -> 0) it no longer needs the network to be
