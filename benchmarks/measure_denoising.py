@@ -93,16 +93,18 @@ def main() -> None:
         iterations = payload["config"]["training"]["iterations"]
         errors = denoising_errors(denoiser, payload, images, name, tokens, mask, args.times, seeds, args.batch)
         ratios = {t: [e / baseline for e in errs] for t, errs in errors.items()}
-        row = {"generator": Path(path).parent.name, "iterations": str(iterations)}
+        # Checkpoints from before loss_weighting existed were all trained with min-SNR.
+        weighting = payload["config"]["diffusion"].get("loss_weighting", "min_snr")
+        row = {"generator": Path(path).parent.name, "iterations": str(iterations), "loss weighting": weighting}
         for t in args.times:
             spread = statistics.stdev(ratios[t]) if len(seeds) > 1 else 0.0
             row[f"t = {t:g}"] = f"{statistics.mean(ratios[t]):.2f} +- {spread:.2f}"
         rows.append(row)
-        figures["generators"].append({"checkpoint": str(path), "iterations": iterations,
+        figures["generators"].append({"checkpoint": str(path), "iterations": iterations, "loss_weighting": weighting,
                                       "mse": {str(t): e for t, e in errors.items()},
                                       "ratio_to_mean_image": {str(t): r for t, r in ratios.items()}})
         print("  ".join(f"{k} {v}" for k, v in row.items()), flush=True)
-    bench_record.write(args.out, rows, figures, columns=["generator", "iterations", *(f"t = {t:g}" for t in args.times)])
+    bench_record.write(args.out, rows, figures, columns=["generator", "iterations", "loss weighting", *(f"t = {t:g}" for t in args.times)])
 
 
 if __name__ == "__main__":

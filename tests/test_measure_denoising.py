@@ -34,5 +34,5 @@ def test_denoising_is_measured_against_the_domains_mean_image(tmp_path):
     ratios = doc["figures"]["generators"][0]["ratio_to_mean_image"]
     assert len(ratios["0.9"]) == 2 and all(r > 0 for r in ratios["0.9"])
     assert max(ratios["0.001"]) < 0.05  # almost no noise: x0 is the input, far better than the mean
-    assert doc["columns"] == ["generator", "iterations", "t = 0.001", "t = 0.9"]
-    assert doc["rows"][0]["generator"] == "gen" and doc["rows"][0]["iterations"] == "3"
+    assert doc["columns"] == ["generator", "iterations", "loss weighting", "t = 0.001", "t = 0.9"]
+    assert doc["rows"][0] == {**doc["rows"][0], "generator": "gen", "iterations": "3", "loss weighting": "min_snr"}
