@@ -27,7 +27,8 @@ import torch
 import bench_record
 from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.data import load_range_image, read_domains_index
-from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, predict_x0
+from omnilidar.generator.diffusion import noised
+from omnilidar.generator.schedule import CosineLogSNRSchedule, predict_x0
 from omnilidar.generator.text import load_prompt_cache
 
 
@@ -40,18 +41,17 @@ def denoising_errors(denoiser, payload: dict, images: torch.Tensor, domain_name:
     out = {}
     with torch.no_grad():
         for t in times:
-            logsnr = schedule.logsnr(torch.tensor(t, dtype=torch.float32))
-            alpha, sigma = alpha_sigma(logsnr)
+            times_of_scans = torch.full((len(images),), t, dtype=torch.float32)
             errors = []
             for seed in seeds:
                 noise = torch.randn(images.shape, generator=torch.Generator().manual_seed(seed))
-                x_t = alpha * images + sigma * noise
+                x_t, logsnr = noised(images, times_of_scans, noise, schedule)  # the trainer's noising
                 squared = 0.0
                 for i in range(0, len(images), batch):
                     sl = slice(i, i + batch)
                     n = x_t[sl].shape[0]
-                    eps = denoiser(x_t[sl], logsnr.expand(n), domain[sl], tokens.expand(n, -1, -1), mask.expand(n, -1))
-                    squared += float((predict_x0(x_t[sl], eps, logsnr.expand(n)) - images[sl]).square().sum())
+                    eps = denoiser(x_t[sl], logsnr[sl], domain[sl], tokens.expand(n, -1, -1), mask.expand(n, -1))
+                    squared += float((predict_x0(x_t[sl], eps, logsnr[sl]) - images[sl]).square().sum())
                 errors.append(squared / images.numel())
             out[t] = errors
     return out

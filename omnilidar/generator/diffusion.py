@@ -45,8 +45,7 @@ def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.T
     unweighted MSE of a v_skip network's own output against v = alpha eps - sigma x0, in fp32.
     In x0 terms min-SNR weighs an error at noise level SNR by min(SNR, gamma), next to nothing
     at high noise, where samplers decide a scan's layout; v_uniform weighs it by SNR + 1, at
-    least 1 (and its target is not rounded through bf16 epsilon, which at high noise is almost
-    all sigma x_t).
+    least 1.
 
     With ``crop_width`` each scan is trained on one azimuth window of that many columns
     (start drawn from ``generator`` first); the denoiser sees the window's true beam
