@@ -36,7 +36,7 @@ def budget_record(iterations: int, generator: dict, quality: dict, runs: list[di
                                             "existed): retrain it")
     return {
         "iterations": int(iterations), "generator": generator["path"],
-        "generator_iterations": generator.get("iterations"),
+        "generator_iterations": generator.get("iterations"), "loss_weighting": generator.get("loss_weighting"),
         "train_cpu_minutes": cpu / 60.0, "train_wall_minutes": generator.get("train_seconds", 0.0) / 60.0,
         "quality": quality["metrics"], "quality_scans": quality["n_generated"],
         **stats,
@@ -141,8 +141,9 @@ def budget_figure(path: str | Path, doc: dict) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     setup = doc["setup"]
+    weighting = f", loss {'/'.join(setup['loss_weighting'])}" if setup.get("loss_weighting") else ""
     ax.set_title(f"{setup['backbone']}, {setup['percent']:g} % labels + N = {setup['scans']} "
-                 f"({len(doc['reference']['seeds'])} seeds, seed-paired)", fontsize=9)
+                 f"({len(doc['reference']['seeds'])} seeds, seed-paired{weighting})", fontsize=9)
     for ax, metric in zip(axes[0][1:], metrics):
         values = [b["quality"][metric] for b in budgets]
         keep = [i for i, v in enumerate(values) if v is not None]

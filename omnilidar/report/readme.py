@@ -94,7 +94,9 @@ def gda_budget(doc: dict) -> str:
         lines.append(f"| {b['iterations']} | {b['train_cpu_minutes']:.1f} | " + " | ".join(q) + f" | "
                      f"{_pm(gain['mean'], gain['std'])} |")
     ref = doc["reference"]
-    lines += ["", f"Supervised only {_pm(ref['supervised_only']['miou_mean'], ref['supervised_only']['miou_std'])}; "
+    weighting = doc["setup"].get("loss_weighting")
+    said = f"Generator loss weighting {', '.join(f'`{w}`' for w in weighting)}. " if weighting else ""
+    lines += ["", said + f"Supervised only {_pm(ref['supervised_only']['miou_mean'], ref['supervised_only']['miou_std'])}; "
                   f"+N real scans with the labeler's labels gain {_pm(ref['real_pseudo_gain']['mean'], ref['real_pseudo_gain']['std'])} "
                   f"(seeds {', '.join(str(s) for s in ref['seeds'])})."]
     for name, cross in doc["trend"]["crossings"].items():
@@ -345,6 +347,7 @@ RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposit
              "sampler_grid": sampler_grid}
 
 PREFIXES = {"bench_": benchmark, "student_": student_check, "gda_decomposition_": gda_decomposition,
+            "gda_budget_": gda_budget,
             "run_cost_": run_cost}
 
 
