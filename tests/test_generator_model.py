@@ -327,3 +327,39 @@ def test_v_uniform_needs_a_head_that_outputs_v():
         check_loss_weighting(s)
     s["diffusion"]["epsilon_output"] = "v_skip"
     check_loss_weighting(s)
+
+
+def test_domain_mean_prior_centres_the_diffusion_on_each_domains_mean_image():
+    """diffusion.prior domain_mean: an untrained v_skip network (zero head) predicts each scan's
+    domain mean at high noise, where a zero prior predicts a blank image; whatever the weights, its
+    eps and its raw v output describe the same x0 (x0 = alpha x_t - sigma v), on windows too."""
+    from omnilidar.generator.schedule import alpha_sigma, predict_x0
+
+    s = tiny_settings()
+    s["diffusion"]["prior"] = "domain_mean"
+    torch.manual_seed(0)
+    net = build_denoiser(s, text_dim=12, num_domains=3).eval()
+    assert "prior_mean" in net.state_dict()  # checkpoints carry it
+    assert "prior_mean" not in build_denoiser(tiny_settings(), 12, 3).state_dict()  # the default: none
+    means = torch.rand(3, 2, 16, 64) * 2 - 1
+    net.set_prior_mean(means)
+    dom, tok, mask = _cond(2)
+    dom = torch.tensor([1, 2])
+    logsnr = torch.full((2,), -12.0)  # t near 1
+    x_t = torch.randn(2, 2, 16, 64)
+    with torch.no_grad():
+        x0 = predict_x0(x_t, net(x_t, logsnr, dom, tok, mask), logsnr, clamp=False)
+    assert torch.allclose(x0, means[[1, 2]], atol=0.01)
+    for p in net.parameters():  # any weights
+        p.data.add_(0.05 * torch.randn_like(p))
+    logsnr = torch.tensor([0.5, -1.0])
+    columns = torch.stack([torch.arange(16), torch.arange(40, 56)])
+    window = torch.gather(x_t, 3, columns[:, None, None, :].expand(-1, 2, 16, -1))
+    alpha, sigma = alpha_sigma(logsnr[:, None, None, None])
+    with torch.no_grad():
+        for x, cols in ((x_t, None), (window, columns)):
+            eps = net(x, logsnr, dom, tok, mask, columns=cols)
+            v = net(x, logsnr, dom, tok, mask, columns=cols, raw_output=True)
+            assert torch.allclose(predict_x0(x, eps, logsnr, clamp=False), alpha * x - sigma * v, atol=1e-5)
+    with pytest.raises(ValueError, match="has no prior"):
+        build_denoiser(tiny_settings(), 12, 3).set_prior_mean(means)

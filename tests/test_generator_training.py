@@ -225,6 +225,28 @@ def test_loss_weighting_reaches_the_trainer(trained, tmp_path):
     assert settings["diffusion"]["loss_weighting"] == "min_snr"  # the default
 
 
+def test_domain_mean_prior_is_computed_from_the_domains_and_saved(trained, tmp_path):
+    """diffusion.prior domain_mean: the checkpoint carries each domain's mean training image, the
+    loaded generator has it, and it trains other weights than the default from the same seed."""
+    from omnilidar.generator.data import RangeImageDataset, load_range_image, read_domains_index
+
+    root, settings, index, prompts, summary = trained
+    p = copy.deepcopy(settings)
+    p["diffusion"]["prior"] = "domain_mean"
+    other = train_generator(p, index, prompts, tmp_path / "work", tmp_path / "p.pt", seed=3)
+    assert other["weights_digest"] != summary["weights_digest"]
+    domains = read_domains_index(index)
+    shape = (settings["range_image"]["height"], settings["range_image"]["width"])
+    first = next(iter(domains))
+    expected = np.mean([load_range_image(f, shape) for f in domains[first]["files"]], axis=0)
+    denoiser, payload = load_generator(tmp_path / "p.pt")
+    assert payload["config"]["diffusion"]["prior"] == "domain_mean"
+    assert np.allclose(denoiser.prior_mean[0].numpy(), expected, atol=1e-6)
+    spans = {n: (0, 1) for n in domains}
+    capped = RangeImageDataset(domains, shape, spans).domain_means(max_scans=2)
+    assert capped.shape == denoiser.prior_mean.shape and not torch.equal(capped, denoiser.prior_mean.cpu())
+
+
 @pytest.mark.parametrize("until", [0, 3, 7])
 def test_a_segment_must_end_inside_the_training(trained, tmp_path, until):
     from omnilidar.errors import InputError

@@ -121,6 +121,21 @@ class RangeImageDataset(torch.utils.data.Dataset):
     def indices_of(self, domain_pos: int) -> np.ndarray:
         return np.flatnonzero(self.domain_of_arr == domain_pos)
 
+    def domain_means(self, max_scans: int = 512) -> torch.Tensor:
+        """(num_domains, 2, H, W) per-pixel mean of each domain's training images (float64 sums),
+        over at most ``max_scans`` evenly spaced scans per domain (a dataset-scale domain's mean
+        is settled long before its 20k scans are read)."""
+        means = []
+        for pos in range(len(self.domain_names)):
+            total = np.zeros((2, *self.shape), dtype=np.float64)
+            scans = self.indices_of(pos)
+            if len(scans) > max_scans:
+                scans = scans[np.linspace(0, len(scans) - 1, max_scans).round().astype(np.int64)]
+            for scan in scans:
+                total += load_range_image(self.files[scan], self.shape)
+            means.append(total / max(len(scans), 1))
+        return torch.from_numpy(np.stack(means)).float()
+
     def __getitem__(self, key) -> dict:
         scan, prompt = key
         img = load_range_image(self.files[scan], self.shape)

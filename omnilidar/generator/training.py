@@ -365,6 +365,8 @@ def train_generator(
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(init_seed)
         denoiser = build_denoiser(own, cache["dim"], len(names))
+    if settings["diffusion"]["prior"] == "domain_mean":  # a student's too: the same domains, the same means
+        denoiser.set_prior_mean(dataset.domain_means())
     frozen = None
     if dist is not None:
         frozen = teacher_weights(teacher, settings, names, cache)

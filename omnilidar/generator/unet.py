@@ -59,6 +59,9 @@ class UNetConfig:
     num_domains: int = 8
     logsnr_range: tuple[float, float] = field(default=(-15.0, 15.0))
     epsilon_output: str = "direct"
+    # "domain_mean": the network denoises the residual from its domain's mean training image
+    # (a buffer filled at training time and saved with the weights); "zero": the plain image.
+    prior: str = "zero"
 
     @property
     def num_levels(self) -> int:
@@ -224,6 +227,8 @@ class EfficientUNet(nn.Module):
         if coords.shape[1] % down or coords.shape[2] % down:
             raise ValueError(f"range image {tuple(coords.shape[1:])} is not divisible by {down} ({cfg.num_levels} levels)")
         self.register_buffer("coords", coords.float().clone(), persistent=False)
+        if cfg.prior == "domain_mean":  # filled by set_prior_mean; persistent, so checkpoints carry it
+            self.register_buffer("prior_mean", torch.zeros(cfg.num_domains, cfg.in_channels, *coords.shape[1:]))
         widths = [cfg.base_channels * m for m in cfg.channel_multipliers]
         base, emb_dim, g = cfg.base_channels, 4 * cfg.base_channels, cfg.groupnorm_groups
         self.time_mlp = nn.Sequential(nn.Linear(base, emb_dim), nn.SiLU(), nn.Linear(emb_dim, emb_dim))
@@ -264,7 +269,8 @@ class EfficientUNet(nn.Module):
     ) -> torch.Tensor:
         """``columns`` (B, W') selects, per scan, the image columns ``x`` holds (an azimuth
         window in training); None = ``x`` is the full sweep. ``raw_output``: the head's output
-        before it becomes epsilon (v for ``v_skip``; the loss of ``loss_weighting: v_uniform``)."""
+        before it becomes epsilon (v of the image for ``v_skip``; the loss of ``loss_weighting:
+        v_uniform``)."""
         b = x.shape[0]
         if self.cfg.cross_attention and (tokens is None or mask is None):
             raise ValueError("this denoiser is text-conditioned: pass prompt tokens and mask")
@@ -277,6 +283,10 @@ class EfficientUNet(nn.Module):
             coords = self.coords.to(x.dtype).expand(b, -1, -1, -1)
         else:  # (C, H, B, W') -> (B, C, H, W')
             coords = self.coords.to(x.dtype)[:, :, columns].permute(2, 0, 1, 3)
+        alpha, sigma = alpha_sigma(logsnr.float().expand(b)[:, None, None, None])
+        prior = self._prior(domain, columns, b)
+        if prior is not None:  # the network sees x_t of the residual x0 - mean: x_t - alpha mean
+            x = (x.float() - alpha * prior).to(x.dtype)
         h = self.stem(torch.cat([x, coords], dim=1))
         skips = []
         for down, level in zip(self.down, self.enc):
@@ -290,13 +300,31 @@ class EfficientUNet(nn.Module):
         for level, up in zip(self.dec, self.up):
             h = up(level(torch.cat([h, skips.pop()], dim=1), emb, tokens, mask, domain))
         out = self.head(F.silu(self.head_norm(h)))
-        if self.cfg.epsilon_output == "direct" or raw_output:
-            return out
+        if self.cfg.epsilon_output == "direct":
+            return out  # epsilon is the same for the image and for its residual
+        if raw_output:  # F learns the residual's v; as the image's v = alpha eps - sigma x0:
+            return out if prior is None else (out.float() - sigma * prior).to(out.dtype)
         # v_skip: eps = sigma x_t + alpha F. The output is still epsilon (same loss and
         # samplers), but near t = 1 (alpha -> 0) it no longer needs the network to be
         # exact to 1e-4 for x0 = (x_t - sigma eps) / alpha to be usable; F learns v.
-        alpha, sigma = alpha_sigma(logsnr.float().expand(b)[:, None, None, None])
+        # With a prior x_t is the residual's, so x0 = alpha x_t + sigma^2 mean - sigma F: the
+        # untrained network (F = 0) already predicts the domain's mean image at high noise.
         return (sigma * x.float() + alpha * out.float()).to(out.dtype)
+
+    def _prior(self, domain: torch.Tensor, columns: torch.Tensor | None, b: int) -> torch.Tensor | None:
+        """(B, C, H, W') mean image of each scan's domain (its window's columns), or None."""
+        if self.cfg.prior != "domain_mean":
+            return None
+        mean = self.prior_mean[domain.expand(b)]
+        if columns is not None:
+            mean = torch.gather(mean, 3, columns[:, None, None, :].expand(-1, mean.shape[1], mean.shape[2], -1))
+        return mean
+
+    def set_prior_mean(self, means: torch.Tensor) -> None:
+        """Store each domain's mean training image (num_domains, C, H, W)."""
+        if self.cfg.prior != "domain_mean":
+            raise ValueError("this denoiser has no prior (generator.diffusion.prior: zero)")
+        self.prior_mean.copy_(means.to(self.prior_mean))
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -354,6 +382,7 @@ def unet_config(settings: dict, text_dim: int, num_domains: int) -> UNetConfig:
         num_domains=int(num_domains),
         logsnr_range=(float(d["logsnr_min"]), float(d["logsnr_max"])),
         epsilon_output=d["epsilon_output"],
+        prior=d.get("prior", "zero"),
     )
 
 
