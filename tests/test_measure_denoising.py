@@ -30,9 +30,14 @@ def test_denoising_is_measured_against_the_domains_mean_image(tmp_path):
     doc = json.loads(out.read_text())
     images = np.stack([np.load(f)["image"] for f in sorted((tmp_path / "ri" / "Fog" / "shard0").glob("*.npz"))])
     assert doc["figures"]["scans"] == len(images) == 3
-    assert np.isclose(doc["figures"]["mean_image_mse"], float(((images - images.mean(0)) ** 2).mean()), rtol=1e-5)
-    ratios = doc["figures"]["generators"][0]["ratio_to_mean_image"]
-    assert len(ratios["0.9"]) == 2 and all(r > 0 for r in ratios["0.9"])
-    assert max(ratios["0.001"]) < 0.05  # almost no noise: x0 is the input, far better than the mean
-    assert doc["columns"] == ["generator", "iterations", "loss weighting", "t = 0.001", "t = 0.9"]
-    assert doc["rows"][0] == {**doc["rows"][0], "generator": "gen", "iterations": "3", "loss weighting": "min_snr"}
+    per_channel = ((images - images.mean(0)) ** 2).mean(axis=(0, 2, 3))  # each channel against its own mean
+    assert np.allclose(list(doc["figures"]["mean_image_mse"].values()), per_channel, rtol=1e-5)
+    assert list(doc["figures"]["mean_image_mse"]) == ["range", "intensity"]
+    for channel in ("range", "intensity"):
+        ratios = doc["figures"]["generators"][0]["ratio_to_mean_image"][channel]
+        assert len(ratios["0.9"]) == 2 and all(r > 0 for r in ratios["0.9"])
+        assert max(ratios["0.001"]) < 0.05  # almost no noise: x0 is the input, far better than the mean
+    assert doc["columns"] == ["generator", "iterations", "loss weighting", "prior", "channel", "t = 0.001", "t = 0.9"]
+    assert [r["channel"] for r in doc["rows"]] == ["range", "intensity"]
+    assert doc["rows"][0] == {**doc["rows"][0], "generator": "gen", "iterations": "3", "loss weighting": "min_snr",
+                              "prior": "zero"}
