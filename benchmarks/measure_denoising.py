@@ -33,6 +33,8 @@ from omnilidar.generator.data import load_range_image, read_domains_index
 from omnilidar.generator.diffusion import noised
 from omnilidar.generator.schedule import CosineLogSNRSchedule, predict_x0
 from omnilidar.generator.text import load_prompt_cache
+from omnilidar.data.range_image import RangeImageSpec, decode, unproject
+from omnilidar.generator.sampling import domain_points_spec
 
 CHANNELS = ("range", "intensity")  # the range image's channels (omnilidar.data.range_image.encode)
 
@@ -62,6 +64,40 @@ def denoising_errors(denoiser, payload: dict, images: torch.Tensor, domain_name:
     return out
 
 
+def image_points(image: np.ndarray, spec: RangeImageSpec) -> np.ndarray:
+    """(N, 4) points of one (2, H, W) range image in [-1, 1]."""
+    ranges, intensity, valid = decode(image, spec)
+    return unproject(ranges, intensity, spec, mask=valid)
+
+
+def sample_points(denoiser, payload: dict, domain_name: str, tokens, mask, seed: int = 0) -> np.ndarray:
+    """One scan of ``domain_name`` drawn with the generator's own sampler and steps."""
+    from omnilidar.generator.diffusion import generate
+
+    cfg = payload["config"]
+    spec = domain_points_spec(cfg, payload, domain_name)
+    d, s = cfg["diffusion"], cfg["sampling"]
+    with torch.no_grad():
+        image = generate(denoiser, payload["domains"].index(domain_name), tokens, mask, [seed], spec.shape,
+                         s["sampler"], s["steps"], CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"]))
+    return image_points(image[0].numpy(), spec)
+
+
+def bev_figure(path: Path, panels: list[tuple[str, np.ndarray]], reach: float = 40.0) -> None:
+    """Bird's-eye view of each (title, points) panel within +-``reach`` m, coloured by height."""
+    from omnilidar.io.figure import plt, save_figure
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.6), squeeze=False)
+    for ax, (title, pts) in zip(axes[0], panels):
+        keep = (np.abs(pts[:, 0]) < reach) & (np.abs(pts[:, 1]) < reach)
+        ax.scatter(pts[keep, 0], pts[keep, 1], s=0.05, c=pts[keep, 2], cmap="viridis", vmin=-3, vmax=2)
+        ax.set_xlim(-reach, reach), ax.set_ylim(-reach, reach), ax.set_aspect("equal")
+        ax.set_title(title, fontsize=7)
+        ax.tick_params(labelsize=6)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=110)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--domains", required=True, help="data/domains/index.json")
@@ -72,6 +108,9 @@ def main() -> None:
     ap.add_argument("--noise-seeds", type=int, default=3)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--figure", type=Path, default=None,
+                    help="also draw one scan of each generator (its own sampler, seed 0) in bird's-eye view "
+                         "beside one of the domain's training scans (PNG)")
     bench_record.out_arg(ap)
     args = ap.parse_args()
     name = args.domain
@@ -85,7 +124,7 @@ def main() -> None:
     tokens, mask = entry["tokens"][0].float(), entry["mask"][0].bool()  # the first prompt, as sampling uses
     seeds = list(range(args.noise_seeds))
     rows, figures = [], {"domain": name, "times": args.times, "noise_seeds": seeds, "generators": []}
-    images = None
+    images, panels = None, []
     for path in args.generator:
         denoiser, payload = load_generator(path)
         shape = (payload["config"]["range_image"]["height"], payload["config"]["range_image"]["width"])
@@ -96,6 +135,8 @@ def main() -> None:
             figures |= {"scans": len(images), "mean_image_mse": dict(zip(CHANNELS, baseline.tolist()))}
             print(f"{name}: {len(images)} training scans; the mean image's MSE "
                   + ", ".join(f"{c} {float(b):.4f}" for c, b in zip(CHANNELS, baseline)))
+            spec = domain_points_spec(payload["config"], payload, name)
+            panels.append((f"a {name} training scan", image_points(images[0].numpy(), spec)))
         iterations = payload["config"]["training"]["iterations"]
         errors = denoising_errors(denoiser, payload, images, name, tokens, mask, args.times, seeds, args.batch)
         # Checkpoints from before loss_weighting / prior existed were all trained with min-SNR, no prior.
@@ -115,6 +156,11 @@ def main() -> None:
             record["ratio_to_mean_image"][channel] = {str(t): r for t, r in ratios.items()}
             print("  ".join(f"{k} {v}" for k, v in row.items()), flush=True)
         figures["generators"].append(record)
+        if args.figure:
+            panels.append((f"{Path(path).parent.name}: {iterations} it.\n{weighting}, prior {prior}",
+                           sample_points(denoiser, payload, name, tokens, mask)))
+    if args.figure:
+        bev_figure(args.figure, panels)
     bench_record.write(args.out, rows, figures, columns=["generator", "iterations", "loss weighting", "prior", "channel",
                                                          *(f"t = {t:g}" for t in args.times)])
 

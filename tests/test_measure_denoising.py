@@ -25,9 +25,11 @@ def test_denoising_is_measured_against_the_domains_mean_image(tmp_path):
     out = tmp_path / "denoising.json"
     subprocess.run([sys.executable, "benchmarks/measure_denoising.py", "--domains", str(index), "--prompts",
                     str(prompts), "--generator", str(tmp_path / "gen" / "model.pt"), "--domain", "Fog",
-                    "--times", "0.001", "0.9", "--noise-seeds", "2", "--threads", "1", "--out", str(out)],
+                    "--times", "0.001", "0.9", "--noise-seeds", "2", "--threads", "1", "--out", str(out),
+                    "--figure", str(tmp_path / "bev.png")],
                    check=True, capture_output=True, text=True)
     doc = json.loads(out.read_text())
+    assert (tmp_path / "bev.png").stat().st_size > 5_000  # a training scan beside the generator's sample
     images = np.stack([np.load(f)["image"] for f in sorted((tmp_path / "ri" / "Fog" / "shard0").glob("*.npz"))])
     assert doc["figures"]["scans"] == len(images) == 3
     per_channel = ((images - images.mean(0)) ** 2).mean(axis=(0, 2, 3))  # each channel against its own mean

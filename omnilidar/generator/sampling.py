@@ -38,6 +38,20 @@ TIMING_FILE = "timing.json"
 PROVENANCE_FILE = "PROVENANCE.json"
 
 
+def domain_points_spec(settings: dict, payload: dict, domain: str) -> RangeImageSpec:
+    """The geometry a ``domain`` scan is back-projected with: its own sensor's (e.g. the pitched
+    drone) when the checkpoint knows it, else the generator's; the image shape is the generator's."""
+    from omnilidar.data.range_image import RangeImageSpec
+    from omnilidar.generator.unet import range_image_spec
+
+    spec = range_image_spec(settings)
+    geometry = payload.get("domain_range_images", {}).get(domain)
+    points_spec = RangeImageSpec(**geometry) if geometry else spec
+    if points_spec.shape != spec.shape:
+        raise InputError(None, f"domain {domain}: images are {points_spec.shape}, the generator makes {spec.shape}")
+    return points_spec
+
+
 def _save_npz_atomic(path: Path, image: np.ndarray) -> None:
     from omnilidar.io.atomic import write_bytes_atomic
 
@@ -92,9 +106,8 @@ def sample_shard(
 
     ``provenance`` (:func:`omnilidar.checkpoints.job_provenance`) decides whether scans
     an interrupted run left in ``out_dir.partial`` are this job's to reuse."""
-    from omnilidar.data.range_image import RangeImageSpec, decode, unproject
+    from omnilidar.data.range_image import decode, unproject
     from omnilidar.io.semantickitti import write_points
-    from omnilidar.generator.unet import range_image_spec
 
     settings = payload["config"]
     names = payload["domains"]
@@ -115,13 +128,7 @@ def sample_shard(
     (partial / "range").mkdir(parents=True, exist_ok=True)
     (partial / "velodyne").mkdir(parents=True, exist_ok=True)
 
-    spec = range_image_spec(settings)
-    # Back-project with the geometry of the domain's own sensor (e.g. the pitched
-    # drone) when the checkpoint knows it; the image shape is the generator's.
-    geometry = payload.get("domain_range_images", {}).get(domain)
-    points_spec = RangeImageSpec(**geometry) if geometry else spec
-    if points_spec.shape != spec.shape:
-        raise InputError(None, f"domain {domain}: images are {points_spec.shape}, the generator makes {spec.shape}")
+    points_spec = domain_points_spec(settings, payload, domain)
     d = settings["diffusion"]
     schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
     entry = prompt_cache["domains"][domain]
@@ -143,7 +150,7 @@ def sample_shard(
         batch = todo[start : start + bs]
         images = generate(
             denoiser, names.index(domain), tokens, mask, [scan_seed(seed, domain, g) for g in batch],
-            spec.shape, sampling["sampler"], sampling["steps"], schedule, sampling["ddim_eta"], bf16,
+            points_spec.shape, sampling["sampler"], sampling["steps"], schedule, sampling["ddim_eta"], bf16,
         ).numpy()
         for g, img in zip(batch, images):
             if not np.isfinite(img).all():  # cannot happen after clamp/nan_to_num; never write one
