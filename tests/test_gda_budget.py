@@ -76,7 +76,7 @@ def test_budget_command_pairs_seeds_and_writes_result_and_figure(tmp_path, capsy
     for n, cpu, gains in ((100, 60.0, [-0.05, -0.04, -0.06]), (1000, 600.0, [0.01, 0.0, 0.02])):
         gen = tmp_path / f"gen{n}.pt"
         torch.save({"iterations": n, "train_seconds": cpu / 2, "train_cpu_seconds": cpu,
-                    "config": {"diffusion": {"loss_weighting": "v_uniform"}}}, gen)
+                    "config": {"diffusion": {"loss_weighting": "v_uniform", "prior": "domain_mean"}}}, gen)
         quality = tmp_path / f"q{n}.json"
         quality.write_text(json.dumps({"metrics": {"FRD": 100.0 / n, "JSD": 0.3, "MMD": 1e-3}, "n_generated": 4}))
         args += ["--budget", f"{n}={gen}={quality}"]
@@ -90,6 +90,7 @@ def test_budget_command_pairs_seeds_and_writes_result_and_figure(tmp_path, capsy
     assert high["quality"]["FRD"] == pytest.approx(0.1)
     # The generators' loss weighting travels into the result (two curves can be told apart).
     assert low["loss_weighting"] == "v_uniform" and doc["setup"]["loss_weighting"] == ["v_uniform"]
+    assert low["prior"] == "domain_mean" and doc["setup"]["prior"] == ["domain_mean"]
     assert doc["reference"]["real_pseudo_gain"]["mean"] == pytest.approx(0.05)
     assert doc["trend"]["crossings"]["supervised_only"]["first_measured_budget"] == 1000
     assert doc["trend"]["crossings"]["real_pseudo"]["trend_cpu_minutes"] > 10.0
@@ -103,7 +104,7 @@ def test_budget_command_pairs_seeds_and_writes_result_and_figure(tmp_path, capsy
     block = gda_budget(doc)
     assert "| 1000 | 10.0 | 0.1 | 0.3 | 0.001 | 1.00 +- 1.00 |" in block
     assert "- supervised only level (0.00): reached at 1000 iterations." in block
-    assert "Generator loss weighting `v_uniform`. Supervised only" in block
+    assert "Generator loss weighting `v_uniform`, prior `domain_mean`. Supervised only" in block
     assert "- real pseudo level (5.00): not reached in the measured range; the trend" in block
     # A budget's runs with other seeds than the reference rows: one clear error, no result.
     (tmp_path / "budget.json").unlink()

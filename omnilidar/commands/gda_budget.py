@@ -73,9 +73,11 @@ def run(args) -> int:
             payload = torch.load(generator_path, map_location="cpu", weights_only=True)
         except Exception as err:  # a missing or corrupt checkpoint: one line naming it
             raise InputError(generator_path, f"not a readable generator checkpoint: {err}") from None
+        diffusion = payload.get("config", {}).get("diffusion", {})
         generator = {"path": generator_path, "iterations": payload.get("iterations"),
                      "train_seconds": payload.get("train_seconds"), "train_cpu_seconds": payload.get("train_cpu_seconds"),
-                     "loss_weighting": payload.get("config", {}).get("diffusion", {}).get("loss_weighting", "min_snr")}
+                     # what the generator was trained as (checkpoints from before these options: the defaults)
+                     "loss_weighting": diffusion.get("loss_weighting", "min_snr"), "prior": diffusion.get("prior", "zero")}
         quality = read_json(quality_path, "sample-quality JSON not found")
         docs = sorted(runs.pop(iterations), key=lambda d: d["seed"])
         budgets.append(bg.budget_record(iterations, generator, quality, docs, supervised, real_pseudo))
@@ -87,6 +89,7 @@ def run(args) -> int:
     setup = {"backbone": backbone, "percent": first["percent"], "scans": settings["experiments"]["gda_decomposition"]["scans"],
              "domain": settings["experiments"]["gda_decomposition"]["domain"], "budgets": sorted(requested["iterations"]),
              "loss_weighting": sorted({b["loss_weighting"] for b in budgets}),
+             "prior": sorted({b["prior"] for b in budgets}),
              "x_axis": "generator training CPU-minutes (process CPU time of train-generator, all threads)"}
     labeler = labeler_quality(read_evaluation(args.labeler_evaluation))
     labeler_check = labeler_against_students(labeler, reference)

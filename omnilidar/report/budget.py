@@ -37,6 +37,7 @@ def budget_record(iterations: int, generator: dict, quality: dict, runs: list[di
     return {
         "iterations": int(iterations), "generator": generator["path"],
         "generator_iterations": generator.get("iterations"), "loss_weighting": generator.get("loss_weighting"),
+        "prior": generator.get("prior"),
         "train_cpu_minutes": cpu / 60.0, "train_wall_minutes": generator.get("train_seconds", 0.0) / 60.0,
         "quality": quality["metrics"], "quality_scans": quality["n_generated"],
         **stats,
@@ -142,6 +143,7 @@ def budget_figure(path: str | Path, doc: dict) -> None:
     ax.legend(fontsize=7)
     setup = doc["setup"]
     weighting = f", loss {'/'.join(setup['loss_weighting'])}" if setup.get("loss_weighting") else ""
+    weighting += f", prior {'/'.join(setup['prior'])}" if setup.get("prior") else ""
     ax.set_title(f"{setup['backbone']}, {setup['percent']:g} % labels + N = {setup['scans']} "
                  f"({len(doc['reference']['seeds'])} seeds, seed-paired{weighting})", fontsize=9)
     for ax, metric in zip(axes[0][1:], metrics):
