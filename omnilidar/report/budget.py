@@ -142,10 +142,11 @@ def budget_figure(path: str | Path, doc: dict) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     setup = doc["setup"]
-    weighting = f", loss {'/'.join(setup['loss_weighting'])}" if setup.get("loss_weighting") else ""
-    weighting += f", prior {'/'.join(setup['prior'])}" if setup.get("prior") else ""
+    generator = ", ".join(f"{key.replace('_', ' ')} {'/'.join(setup[key])}" for key in ("loss_weighting", "prior")
+                          if setup.get(key))
     ax.set_title(f"{setup['backbone']}, {setup['percent']:g} % labels + N = {setup['scans']} "
-                 f"({len(doc['reference']['seeds'])} seeds, seed-paired{weighting})", fontsize=9)
+                 f"({len(doc['reference']['seeds'])} seeds, seed-paired)" + (f"\ngenerator: {generator}" if generator else ""),
+                 fontsize=9)
     for ax, metric in zip(axes[0][1:], metrics):
         values = [b["quality"][metric] for b in budgets]
         keep = [i for i, v in enumerate(values) if v is not None]
