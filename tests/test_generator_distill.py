@@ -384,3 +384,24 @@ def test_the_student_check_trains_no_segmentor_and_the_full_study_keeps_its_curv
     assert "--gda-curve" not in out.split("rule sampler_tradeoff:", 1)[1]
     full = planned_jobs(wf, "results/tradeoff.json", "--configfile", "config/test.yaml")
     assert full["gda_curve"] == 1 and full["train_labeler"] == 1
+
+
+def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
+    """diffusion.prior domain_mean: a student of another width, which cannot load its teacher's state,
+    still takes the teacher's domain means, so both denoise the same residual."""
+    _, settings, index, prompts, _ = teacher
+    wide = copy.deepcopy(settings)
+    wide["diffusion"]["prior"] = "domain_mean"
+    wide["model"]["base_channels"] = 2 * settings["model"]["base_channels"]
+    wide["distillation"].update(student_channels=settings["model"]["base_channels"])
+    wide["training"]["iterations"] = 1
+    train_generator(wide, index, prompts, tmp_path / "teacher_work", tmp_path / "model.pt", seed=3)
+    with torch.no_grad():  # a teacher whose means differ from what the data would give
+        trained = torch.load(tmp_path / "model.pt", weights_only=True)
+        trained["state_dict"]["prior_mean"] += 0.25
+        torch.save(trained, tmp_path / "model.pt")
+    train_generator(wide, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                    teacher=tmp_path / "model.pt")
+    student, _ = load_generator(tmp_path / "student.pt")
+    teacher_den, _ = load_generator(tmp_path / "model.pt")
+    assert torch.equal(student.prior_mean, teacher_den.prior_mean)

@@ -227,14 +227,16 @@ def test_loss_weighting_reaches_the_trainer(trained, tmp_path):
 
 def test_domain_mean_prior_is_computed_from_the_domains_and_saved(trained, tmp_path):
     """diffusion.prior domain_mean: the checkpoint carries each domain's mean training image, the
-    loaded generator has it, and it trains other weights than the default from the same seed."""
+    loaded generator has it, and it trains other weights than the default from the same seed, afresh
+    in a work dir the default finished."""
     from omnilidar.generator.data import RangeImageDataset, load_range_image, read_domains_index
 
     root, settings, index, prompts, summary = trained
     p = copy.deepcopy(settings)
     p["diffusion"]["prior"] = "domain_mean"
+    shutil.copytree(root / "work", tmp_path / "work")  # the default's finished run: not this job's to resume
     other = train_generator(p, index, prompts, tmp_path / "work", tmp_path / "p.pt", seed=3)
-    assert other["weights_digest"] != summary["weights_digest"]
+    assert other["resumed_from"] == 0 and other["weights_digest"] != summary["weights_digest"]
     domains = read_domains_index(index)
     shape = (settings["range_image"]["height"], settings["range_image"]["width"])
     first = next(iter(domains))

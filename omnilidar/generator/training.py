@@ -365,13 +365,13 @@ def train_generator(
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(init_seed)
         denoiser = build_denoiser(own, cache["dim"], len(names))
-    if settings["diffusion"]["prior"] == "domain_mean":  # a student's too: the same domains, the same means
-        denoiser.set_prior_mean(dataset.domain_means())
     frozen = None
     if dist is not None:
         frozen = teacher_weights(teacher, settings, names, cache)
         if own["model"] == settings["model"]:
             denoiser.load_state_dict(frozen.state_dict())
+    if settings["diffusion"]["prior"] == "domain_mean":  # a student centres on its teacher's means
+        denoiser.set_prior_mean(dataset.domain_means() if frozen is None else frozen.prior_mean)
     cuda = torch.cuda.is_available()
     # bf16 autocast on CUDA through the optimizer wrapper; on a CPU only where it multiplies bf16
     # natively: racing both precisions at once, bf16 took 0.8x the fp32 time in the median, though
