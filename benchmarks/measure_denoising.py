@@ -28,13 +28,13 @@ import numpy as np
 import torch
 
 import bench_record
+from omnilidar.data.range_image import RangeImageSpec, decode, unproject
 from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.data import load_range_image, read_domains_index
-from omnilidar.generator.diffusion import noised
+from omnilidar.generator.diffusion import generate, noised
+from omnilidar.generator.sampling import domain_points_spec
 from omnilidar.generator.schedule import CosineLogSNRSchedule, predict_x0
 from omnilidar.generator.text import load_prompt_cache
-from omnilidar.data.range_image import RangeImageSpec, decode, unproject
-from omnilidar.generator.sampling import domain_points_spec
 
 CHANNELS = ("range", "intensity")  # the range image's channels (omnilidar.data.range_image.encode)
 
@@ -72,8 +72,6 @@ def image_points(image: np.ndarray, spec: RangeImageSpec) -> np.ndarray:
 
 def sample_points(denoiser, payload: dict, domain_name: str, tokens, mask, seed: int = 0) -> np.ndarray:
     """One scan of ``domain_name`` drawn with the generator's own sampler and steps."""
-    from omnilidar.generator.diffusion import generate
-
     cfg = payload["config"]
     spec = domain_points_spec(cfg, payload, domain_name)
     d, s = cfg["diffusion"], cfg["sampling"]

@@ -35,6 +35,11 @@ def azimuth_windows(width: int, crop_width: int, batch: int, generator: torch.Ge
     return (start[:, None] + torch.arange(crop_width, device=device)[None, :]) % width
 
 
+def take_columns(images: torch.Tensor, columns: torch.Tensor) -> torch.Tensor:
+    """(B, C, H, W') the ``columns`` (B, W') of each of ``images`` (B, C, H, W): one window per scan."""
+    return torch.gather(images, 3, columns[:, None, None, :].expand(-1, images.shape[1], images.shape[2], -1))
+
+
 def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor, tokens: torch.Tensor,
                  mask: torch.Tensor, schedule: CosineLogSNRSchedule, gamma: float,
                  generator: torch.Generator, crop_width: int | None = None,
@@ -55,7 +60,7 @@ def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.T
     columns = None
     if crop_width is not None and crop_width < image.shape[-1]:
         columns = azimuth_windows(image.shape[-1], crop_width, b, generator, image.device)
-        image = torch.gather(image, 3, columns[:, None, None, :].expand(-1, image.shape[1], image.shape[2], -1))
+        image = take_columns(image, columns)
     t = torch.rand(b, generator=generator, device=image.device, dtype=torch.float32)
     eps = torch.randn(image.shape, generator=generator, device=image.device, dtype=torch.float32)
     x_t, logsnr = noised(image, t, eps, schedule)

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import torch
 
-from omnilidar.generator.diffusion import azimuth_windows
+from omnilidar.generator.diffusion import azimuth_windows, take_columns
 from omnilidar.generator.samplers import time_grid
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, predict_x0
 
@@ -72,7 +72,7 @@ def _draw(image: torch.Tensor, steps: int, generator: torch.Generator, crop_widt
     extra = {}
     if crop_width is not None and crop_width < image.shape[-1]:
         columns = azimuth_windows(image.shape[-1], crop_width, b, generator, image.device)
-        image = torch.gather(image, 3, columns[:, None, None, :].expand(-1, image.shape[1], image.shape[2], -1))
+        image = take_columns(image, columns)
         extra = {"columns": columns}
     index = torch.randint(1, steps + 1, (b,), generator=generator, device=image.device)
     eps = torch.randn(image.shape, generator=generator, device=image.device, dtype=torch.float32)

@@ -28,6 +28,7 @@ import torch.nn.functional as F
 
 from omnilidar.generator.cdfm import CDFM
 from omnilidar.generator.dafs import DAFS
+from omnilidar.generator.diffusion import take_columns
 from omnilidar.generator.schedule import alpha_sigma
 
 
@@ -316,9 +317,7 @@ class EfficientUNet(nn.Module):
         if self.cfg.prior != "domain_mean":
             return None
         mean = self.prior_mean[domain.expand(b)]
-        if columns is not None:
-            mean = torch.gather(mean, 3, columns[:, None, None, :].expand(-1, mean.shape[1], mean.shape[2], -1))
-        return mean
+        return mean if columns is None else take_columns(mean, columns)
 
     def set_prior_mean(self, means: torch.Tensor) -> None:
         """Store each domain's mean training image (num_domains, C, H, W)."""

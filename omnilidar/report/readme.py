@@ -94,10 +94,9 @@ def gda_budget(doc: dict) -> str:
         lines.append(f"| {b['iterations']} | {b['train_cpu_minutes']:.1f} | " + " | ".join(q) + f" | "
                      f"{_pm(gain['mean'], gain['std'])} |")
     ref = doc["reference"]
-    weighting, prior = doc["setup"].get("loss_weighting"), doc["setup"].get("prior")
-    said = f"Generator loss weighting {', '.join(f'`{w}`' for w in weighting)}" if weighting else ""
-    said += f", prior {', '.join(f'`{p}`' for p in prior)}" if weighting and prior else ""
-    said += ". " if said else ""
+    generator = [f"{key.replace('_', ' ')} {', '.join(f'`{v}`' for v in doc['setup'][key])}"
+                 for key in ("loss_weighting", "prior") if doc["setup"].get(key)]
+    said = f"Generator {', '.join(generator)}. " if generator else ""
     lines += ["", said + f"Supervised only {_pm(ref['supervised_only']['miou_mean'], ref['supervised_only']['miou_std'])}; "
                   f"+N real scans with the labeler's labels gain {_pm(ref['real_pseudo_gain']['mean'], ref['real_pseudo_gain']['std'])} "
                   f"(seeds {', '.join(str(s) for s in ref['seeds'])})."]
