@@ -599,6 +599,15 @@ def attempt_checkpoint(attempt):
     return f"{GENERATOR}/full/{'student' if student else 'model'}.pt"
 
 
+def edit_sources(sampling):
+    """The domains index, whose training scans sampling starts from when strength < 1 (SDEdit)."""
+    return [f"{DATA}/domains/index.json"] if sampling.get("strength", 1.0) < 1.0 else []
+
+
+def sources_arg(wildcards, input):
+    return f"--domains {input.sources[0]} " if input.sources else ""
+
+
 def attempt_generator_settings(name, drop=()):
     """The generator section with attempt ``name``'s generator keys laid over it, as one JSON value."""
     from omnilidar.dicts import deep_merge

@@ -10,7 +10,7 @@ TRAIN_GENERATOR_SHELL = (
 )
 SAMPLE_SHELL = (
     "omnilidar sample --checkpoint {input.checkpoint} --prompts {input.prompts} "
-    "--domain {wildcards.domain} --shard {wildcards.shard} --settings {params.settings:q} "
+    "--domain {wildcards.domain} --shard {wildcards.shard} {params.sources}--settings {params.settings:q} "
     "--seed {params.seed} --threads {threads} --out {output} > {log} 2>&1"
 )
 
@@ -136,6 +136,7 @@ rule sample_domain:
     input:
         checkpoint=sampling_checkpoint("full"),
         prompts=rules.encode_prompts.output,
+        sources=edit_sources(config["generator"]["sampling"]),
     output:
         directory(f"{DATA}/samples/{{domain}}/shard_{{shard}}"),
     wildcard_constraints:
@@ -143,6 +144,7 @@ rule sample_domain:
         shard=r"\d+",
     params:
         settings=settings("generator", drop=("distillation",)),
+        sources=sources_arg,
         seed=config["seed"],
         code=code("sample"),
     log:
@@ -191,6 +193,7 @@ rule sample_attempt:
     input:
         checkpoint=lambda w: attempt_checkpoint(w.attempt),
         prompts=rules.encode_prompts.output,
+        sources=lambda w: edit_sources(json.loads(attempt_generator_settings(w.attempt))["sampling"]),
     output:
         directory(f"{DATA}/samples/attempt-{{attempt}}/{{domain}}/shard_{{shard}}"),
     wildcard_constraints:
@@ -199,6 +202,7 @@ rule sample_attempt:
         shard=r"\d+",
     params:
         settings=lambda w: attempt_generator_settings(w.attempt),
+        sources=sources_arg,
         seed=config["seed"],
         code=code("sample"),
     log:

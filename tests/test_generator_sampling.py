@@ -108,3 +108,75 @@ def test_cli_sample_and_unknown_domain(model_files, tmp_path, capsys):
     assert "unknown domain 'Mars'" in capsys.readouterr().err
     assert not (tmp_path / "m").exists()
     assert main(["sample", "--checkpoint", str(tmp_path / "nope.pt")] + args[3:] + ["--domain", "Fog", "--out", str(tmp_path / "x")]) == 2
+
+
+def _sources(root, n=4):
+    """``n`` distinct (2, 16, 64) training images of one domain, as build_domain writes them."""
+    shard = root / "fog_shard"
+    shard.mkdir(exist_ok=True)
+    rng = np.random.default_rng(0)
+    files = []
+    for i in range(n):
+        img = np.clip(rng.uniform(-0.9, 0.9, (2, 1, 1)) + 0.05 * rng.standard_normal((2, 16, 64)), -1, 1)
+        files.append(shard / f"{i:06d}.npz")
+        np.savez(files[-1], image=img.astype(np.float32))
+    return files
+
+
+def test_strength_below_one_edits_the_domains_training_scans(model_files, tmp_path):
+    from omnilidar.errors import InputError
+    from omnilidar.generator.sampling import source_scans, student_sampling
+
+    root, settings, cache = model_files
+    files = _sources(tmp_path)
+    with pytest.raises(InputError, match="domains index"):
+        _sample(root, settings, cache, tmp_path / "none", strength=0.1)
+    den, payload = load_generator(root / "ckpt.pt")
+    s = dict(settings["sampling"], strength=0.05)
+    for out in ("a", "b"):
+        sample_shard(den, payload, cache, "Fog", 0, 4, s, 5, tmp_path / out, log=lambda *_: None, sources=files)
+    chosen = source_scans(files, 5, "Fog", [0, 1, 2, 3])
+    assert sorted(chosen) == files  # the first len(files) scans start from different training scans
+    for g, src in enumerate(chosen):
+        img = np.load(tmp_path / "a" / "range" / f"{g:06d}.npz")["image"]
+        np.testing.assert_array_equal(img, np.load(tmp_path / "b" / "range" / f"{g:06d}.npz")["image"])
+        gaps = [np.abs(img - np.load(f)["image"]).mean() for f in files]
+        assert np.argmin(gaps) == files.index(src) and gaps[files.index(src)] < 0.1  # close to its own source
+    assert json.loads((tmp_path / "a" / "timing.json").read_text())["strength"] == 0.05
+    # at strength 1 the sources are not used: the scans are the plain samples
+    sample_shard(den, payload, cache, "Fog", 0, 2, dict(settings["sampling"], strength=1.0), 5, tmp_path / "c",
+                 log=lambda *_: None, sources=files)
+    _sample(root, settings, cache, tmp_path / "d", n=2)
+    np.testing.assert_array_equal(np.load(tmp_path / "c/range/000000.npz")["image"],
+                                  np.load(tmp_path / "d/range/000000.npz")["image"])
+    # a distilled student samples its own grid from noise
+    with pytest.raises(InputError, match="strength"):
+        student_sampling(s, {"student": {"sampler": "ddim", "steps": 2}}, "student.pt")
+
+
+def test_strength_more_noise_moves_further_from_the_source(model_files):
+    root, settings, cache = model_files
+    den, _ = load_generator(root / "ckpt.pt")
+    e = cache["domains"]["Fog"]
+    init = torch.full((2, 2, 16, 64), 0.5)
+    gaps = [(generate(den, 1, e["tokens"][0], e["mask"][0], [1, 2], (16, 64), "unipc", 10, init=init,
+                      strength=s) - init).abs().mean().item() for s in (0.05, 0.5, 1.0)]
+    assert gaps[0] < gaps[1] < gaps[2]
+    with pytest.raises(ValueError, match="init images"):
+        generate(den, 1, e["tokens"][0], e["mask"][0], [1, 2], (16, 64), strength=0.5)
+
+
+def test_cli_sample_edits_with_the_domains_index(model_files, tmp_path, capsys):
+    root, settings, _ = model_files
+    _sources(tmp_path, n=2)
+    (tmp_path / "index.json").write_text(json.dumps({"domains": {"Fog": {"id": 1, "shards": ["fog_shard"]}}}))
+    edit = dict(settings, sampling=dict(settings["sampling"], strength=0.3))
+    args = ["sample", "--checkpoint", str(root / "ckpt.pt"), "--prompts", str(root / "prompts.pt"),
+            "--settings", json.dumps(edit), "--seed", "1", "--shard", "0", "--scans-per-shard", "2"]
+    assert main(args + ["--domain", "Fog", "--out", str(tmp_path / "s")]) == 2  # no index: one clear error
+    assert "--domains" in capsys.readouterr().err and not (tmp_path / "s").exists()
+    assert main(args + ["--domains", str(tmp_path / "index.json"), "--domain", "Vehicle",
+                        "--out", str(tmp_path / "v")]) == 2
+    assert "no domain 'Vehicle'" in capsys.readouterr().err
+    assert main(args + ["--domains", str(tmp_path / "index.json"), "--domain", "Fog", "--out", str(tmp_path / "s")]) == 0
+    assert len(list((tmp_path / "s" / "range").glob("*.npz"))) == 2

@@ -10,6 +10,7 @@ adapters around these two functions.
 
 from __future__ import annotations
 
+import math
 import zlib
 
 import torch
@@ -88,15 +89,26 @@ def generate(
     schedule: CosineLogSNRSchedule | None = None,
     ddim_eta: float = 0.0,
     autocast_bf16: bool = False,
+    init: torch.Tensor | None = None,
+    strength: float = 1.0,
 ) -> torch.Tensor:
     """Sample one batch: len(seeds) range images (B, 2, H, W) in [-1, 1], float32 on CPU.
 
     ``tokens`` (T, D) and ``mask`` (T,) are the domain's (first) prompt.
+
+    With ``strength`` < 1 (SDEdit, Meng et al. 2022) the batch starts from ``init`` (B, 2, H, W),
+    real scans noised to t = ``strength`` with each scan's seeded noise, and the sampler runs
+    ceil(steps * strength) steps from there to 0: the same step density as a full run. Near 0 a
+    scan stays its source; at 1 it is a fresh sample (``init`` is then not used).
     """
+    if not 0.0 < strength <= 1.0:
+        raise ValueError(f"strength must be in (0, 1], got {strength}")
+    if strength < 1.0 and (init is None or init.shape != (len(seeds), 2, *shape)):
+        raise ValueError(f"strength {strength} needs init images of shape {(len(seeds), 2, *shape)}")
     device = next(denoiser.parameters()).device
     kwargs = {"eta": ddim_eta} if sampler == "ddim" else {}
     sched = make_scheduler(sampler, schedule or CosineLogSNRSchedule(), **kwargs)
-    sched.set_timesteps(steps)
+    sched.set_timesteps(math.ceil(steps * strength - 1e-9), start=strength)
     gens = []
     for s in seeds:
         g = torch.Generator(device=device)
@@ -104,6 +116,9 @@ def generate(
         gens.append(g)
     b = len(seeds)
     x = torch.stack([torch.randn((2, *shape), generator=g, device=device) for g in gens])
+    if strength < 1.0:
+        alpha, sigma = alpha_sigma(sched.logsnr_at(sched.timesteps[0]))
+        x = alpha.to(device) * init.to(device).float() + sigma.to(device) * x
     dom = torch.full((b,), int(domain_index), dtype=torch.long, device=device)
     tok = tokens.to(device).float().expand(b, -1, -1)
     msk = mask.to(device).bool().expand(b, -1)

@@ -67,12 +67,15 @@ SPACINGS = ("uniform", "logsnr", "karras")
 KARRAS_RHO = 7.0
 
 
-def time_grid(schedule: CosineLogSNRSchedule, n: int, spacing: str = "uniform") -> torch.Tensor:
-    """``n + 1`` times from 1 down to 0 (float64): uniform in t, uniform in logSNR, or Karras'
-    rho-spacing of sigma = exp(-logSNR / 2) between the schedule's ends."""
+def time_grid(schedule: CosineLogSNRSchedule, n: int, spacing: str = "uniform", start: float = 1.0) -> torch.Tensor:
+    """``n + 1`` times from ``start`` (1: pure noise) down to 0 (float64): uniform in t, uniform
+    in logSNR, or Karras' rho-spacing of sigma = exp(-logSNR / 2) between logSNR(start) and the
+    schedule's clean end."""
+    if not 0.0 < start <= 1.0:
+        raise ValueError(f"a time grid starts in (0, 1], got {start}")
     if spacing == "uniform":
-        return torch.linspace(1.0, 0.0, n + 1, dtype=torch.float64)
-    lo, hi = schedule.logsnr_min, schedule.logsnr_max
+        return torch.linspace(start, 0.0, n + 1, dtype=torch.float64)
+    lo, hi = float(schedule.logsnr(torch.tensor(start, dtype=torch.float64))), schedule.logsnr_max
     if spacing == "logsnr":
         logsnr = torch.linspace(lo, hi, n + 1, dtype=torch.float64)
     else:
@@ -80,7 +83,7 @@ def time_grid(schedule: CosineLogSNRSchedule, n: int, spacing: str = "uniform") 
         s_max, s_min = math.exp(-0.5 * lo) ** (1 / KARRAS_RHO), math.exp(-0.5 * hi) ** (1 / KARRAS_RHO)
         logsnr = -2.0 * KARRAS_RHO * torch.log(s_max + ramp * (s_min - s_max))
     grid = schedule.t_of_logsnr(logsnr)
-    grid[0], grid[-1] = 1.0, 0.0  # the ends exactly, whatever the rounding
+    grid[0], grid[-1] = start, 0.0  # the ends exactly, whatever the rounding
     return grid
 
 
@@ -105,12 +108,14 @@ class ContinuousScheduler:
     def num_inference_steps(self) -> int:
         return len(self.timesteps)
 
-    def set_timesteps(self, num_inference_steps: int, device: torch.device | str | None = None) -> None:
-        """Use ``num_inference_steps`` steps in t from 1 to 0, spaced by ``self.spacing``."""
+    def set_timesteps(self, num_inference_steps: int, device: torch.device | str | None = None,
+                      start: float = 1.0) -> None:
+        """Use ``num_inference_steps`` steps in t from ``start`` (1, or less to finish a partly
+        noised image) to 0, spaced by ``self.spacing``."""
         n = int(num_inference_steps)
         if n < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {num_inference_steps}")
-        self._grid = time_grid(self.schedule, n, self.spacing)
+        self._grid = time_grid(self.schedule, n, self.spacing, start)
         self._logsnr = self.schedule.logsnr(self._grid)
         self.timesteps = self._grid[:-1].clone()
         self._step_index = 0

@@ -9,7 +9,8 @@ already on disk. Each scan is written as
     DIR/range/%06d.npz       key "image": (2, H, W) float32 in [-1, 1]
     DIR/velodyne/%06d.bin    float32 x, y, z, intensity (SemanticKITTI layout)
 
-named by its global index. Work goes into ``DIR.partial``; scans already there are
+named by its global index. With ``sampling.strength`` < 1 scan ``g`` is an SDEdit of one of the
+domain's training scans (:func:`source_scans`), noised to t = strength and denoised. Work goes into ``DIR.partial``; scans already there are
 skipped (resume after interruption) when the partial shard's ``PROVENANCE.json``
 matches this job's (same checkpoint and prompt contents, settings, seed and code),
 else it starts fresh; every file is written atomically, and only a complete shard
@@ -23,6 +24,7 @@ import json
 import os
 import shutil
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +32,7 @@ import torch
 
 from omnilidar.errors import InputError
 from omnilidar.manifest import write_manifest
+from omnilidar.generator.data import load_range_image, rng_for
 from omnilidar.generator.diffusion import generate, scan_seed
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 
@@ -77,6 +80,13 @@ def _check_partial(partial: Path, provenance: dict | None, log) -> None:
         stamp.write_text(json.dumps(provenance, indent=1, sort_keys=True))
 
 
+def source_scans(files: list[Path], seed: int, domain: str, indices: list[int]) -> list[Path]:
+    """The training scans that global scans ``indices`` of ``domain`` start from (strength < 1):
+    a seeded permutation of the domain's scans, so that scans 0..len(files)-1 all differ."""
+    order = rng_for(seed, zlib.crc32(domain.encode()), 1).permutation(len(files))
+    return [files[order[g % len(files)]] for g in indices]
+
+
 def student_sampling(sampling: dict, payload: dict, path: str | Path) -> dict:
     """The sampling settings for a checkpoint: a distilled student samples with the DDIM steps it
     was distilled for, and ``sampling.student`` asks for one."""
@@ -86,6 +96,9 @@ def student_sampling(sampling: dict, payload: dict, path: str | Path) -> dict:
                                "(make data/generator/<preset>/student.pt with distill_generator)")
     if not student:
         return sampling
+    if sampling.get("strength", 1.0) < 1.0:
+        raise InputError(path, "a distilled student samples its own few-step grid from noise; "
+                               "generator.sampling.strength < 1 needs the trained generator")
     return {**sampling, "sampler": student["sampler"], "steps": int(student["steps"]), "ddim_eta": 0.0}
 
 
@@ -101,11 +114,13 @@ def sample_shard(
     out_dir: str | Path,
     log=print,
     provenance: dict | None = None,
+    sources: list[Path] | None = None,
 ) -> dict:
     """Generate one shard into ``out_dir`` (via ``out_dir.partial``); return timing stats.
 
     ``provenance`` (:func:`omnilidar.checkpoints.job_provenance`) decides whether scans
-    an interrupted run left in ``out_dir.partial`` are this job's to reuse."""
+    an interrupted run left in ``out_dir.partial`` are this job's to reuse. ``sources``: the
+    domain's training scans, which ``sampling.strength`` < 1 starts from."""
     from omnilidar.data.range_image import decode, unproject
     from omnilidar.io.semantickitti import write_points
 
@@ -119,6 +134,10 @@ def sample_shard(
         raise InputError(None, f"prompt cache is {prompt_cache['dim']}-d, the generator was trained on {payload['text']['dim']}-d")
     if shard < 0 or scans_per_shard < 1:
         raise InputError(None, f"need shard >= 0 and scans per shard >= 1, got {shard}, {scans_per_shard}")
+    strength = float(sampling.get("strength", 1.0))
+    if strength < 1.0 and not sources:
+        raise InputError(None, f"generator.sampling.strength {strength} starts from the domain's training scans: "
+                               "give the domains index (omnilidar sample --domains)")
     out_dir = Path(out_dir)
     if out_dir.exists():
         log(f"{out_dir} is complete; nothing to do")
@@ -148,9 +167,14 @@ def sample_shard(
     bs = int(sampling["batch_size"])
     for start in range(0, len(todo), bs):
         batch = todo[start : start + bs]
+        init = None
+        if strength < 1.0:
+            init = torch.from_numpy(np.stack([load_range_image(f, points_spec.shape)
+                                              for f in source_scans(sources, seed, domain, batch)]))
         images = generate(
             denoiser, names.index(domain), tokens, mask, [scan_seed(seed, domain, g) for g in batch],
             points_spec.shape, sampling["sampler"], sampling["steps"], schedule, sampling["ddim_eta"], bf16,
+            init=init, strength=strength,
         ).numpy()
         for g, img in zip(batch, images):
             if not np.isfinite(img).all():  # cannot happen after clamp/nan_to_num; never write one
@@ -166,7 +190,8 @@ def sample_shard(
     # What the shard cost (model loading excluded); downstream compute accounting reads it.
     timing = {"scans": len(todo), "resumed_scans": skipped, "seconds": seconds,
               "seconds_per_scan": seconds / len(todo) if todo else None, "device": str(device),
-              "sampler": sampling["sampler"], "steps": int(sampling["steps"]), "batch_size": bs}
+              "sampler": sampling["sampler"], "steps": int(sampling["steps"]), "strength": strength,
+              "batch_size": bs}
     (partial / TIMING_FILE).write_text(json.dumps(timing, indent=1))
     write_manifest(partial)
     if out_dir.exists():
