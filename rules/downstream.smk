@@ -797,6 +797,7 @@ rule gda_decomposition:
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         attempts=" ".join(f"--attempt {a}" for a in attempt_evaluations(DECOMPOSITION["domain"], "val")),
+        generator_iterations=MAIN_GENERATOR_ITERATIONS,
         code=result_code("gda-decomposition"),
     log:
         "logs/downstream/gda_decomposition.log",
@@ -809,7 +810,7 @@ rule gda_decomposition:
     shell:
         with_table(
             "omnilidar gda-decomposition --evaluations {input.evaluations} {params.attempts} "
-            "--pool-labels {input.pool_labels} "
+            "--pool-labels {input.pool_labels} --generator-iterations {params.generator_iterations} "
             "--labeler-evaluation {input.labeler} --settings {params.settings:q} --seed {params.seed} "
             "--data-source {params.data_source:q} --out {output.json} --figure {output.figure} > {log} 2>&1"
         )

@@ -449,6 +449,54 @@ def test_round_trip_rows_measure_each_link_from_the_ceiling_to_gda():
     assert total == pytest.approx(gap)
 
 
+def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop_paying(tmp_path):
+    values = {"supervised_only": [0.10, 0.12], "real_truth": [0.20, 0.22], "real_pseudo": [0.17, 0.18],
+              "gda": [0.04, 0.06], "lasermix": [0.15, 0.16], "round_trip_truth": [0.19, 0.21],
+              "round_trip_pseudo": [0.16, 0.18]}
+    evals = [_seeded("minkunet", role, m, s) for role, ms in values.items() for s, m in enumerate(ms)]
+    runs = {"edit50": [0.13, 0.15], "edit75": [0.09, 0.11], "long_edit75": [0.12, 0.14], "long": [0.08, 0.10],
+            "share25": [0.2, 0.2]}
+    requested = {"edit50": {"generator": {"sampling": {"strength": 0.5}}},
+                 "edit75": {"generator": {"sampling": {"strength": 0.75}}},
+                 "long_edit75": {"generator": {"training": {"iterations": 3000}, "sampling": {"strength": 0.75}}},
+                 "long": {"generator": {"training": {"iterations": 3000}}},
+                 "share25": {"mixing": {"generated_share": 0.25}}}  # not a strength point
+    tried = {n: [_seeded("minkunet", "gda", m, s) for s, m in enumerate(ms)] for n, ms in runs.items()}
+    study = dc.decomposition(evals, tried)["minkunet"]
+    curves = dc.strength_curves(study, requested, 300)
+    assert list(curves) == ["300", "3000"]
+    main_curve, long_curve = curves["300"], curves["3000"]
+    assert main_curve["strength"] == [0.0, 0.5, 0.75, 1.0]
+    assert main_curve["rows"] == ["round_trip_pseudo", "edit50", "edit75", "generated"]
+    assert main_curve["gain_mean"] == pytest.approx([0.06, 0.03, -0.01, -0.06])
+    assert main_curve["crossing_strength"] == pytest.approx(0.5 + 0.25 * 0.03 / 0.04)  # between 0.5 and 0.75
+    assert long_curve["strength"] == [0.0, 0.75, 1.0] and long_curve["gain_mean"] == pytest.approx([0.06, 0.02, -0.02])
+    assert long_curve["crossing_strength"] == pytest.approx(0.875)
+    trend = dc.strength_trend(curves)
+    slope = (0.875 - main_curve["crossing_strength"]) / 1.0  # one decade of iterations
+    assert trend["slope_per_decade"] == pytest.approx(slope)
+    assert trend["iterations_at_strength_1"] == pytest.approx(3000 * 10 ** ((1 - 0.875) / slope))
+    assert "two budgets" in trend["note"]
+    assert dc.crossing_strength([0.0, 1.0], [-0.01, -0.02]) is None  # never pays
+    assert dc.crossing_strength([0.0, 1.0], [0.01, 0.02]) is None  # always pays
+    flat = dc.strength_trend({"a": {"iterations": 300, "crossing_strength": 0.6},
+                              "b": {"iterations": 3000, "crossing_strength": 0.5}})
+    assert flat["iterations_at_strength_1"] is None and "does not move" in flat["note"]
+    # Without a strength attempt there is no curve.
+    assert dc.strength_curves(study, {"share25": requested["share25"]}, 300) == {}
+    # README's block and the figure show them.
+    from omnilidar.report.readme import gda_decomposition
+
+    study["strength_curves"], study["strength_trend"] = curves, trend
+    doc = {"backbones": {"minkunet": study}, "setup": {"evalset": "val", "percent": 1, "scans": 2, "domain": "vehicle"},
+           "attempts": requested}
+    text = gda_decomposition(doc)
+    assert "generator of 300 iterations, gain over supervised only by sampling strength: 0: 6.00 +- 0.00, 0.5: 3.00 +- 0.00" in text
+    assert "stops paying at strength 0.69" in text and "per decade of generator iterations" in text
+    dc.decomposition_figure(tmp_path / "fig.png", doc)
+    assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG"
+
+
 def test_sample_quality_scores_generated_scans_against_held_out_real_scans(study_tree, tmp_path):
     """sample-quality: the pool's own range images score JSD = MMD = 0 against the pool; noisy
     images score worse; too few scans is one clear error and no file."""

@@ -19,6 +19,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--domain", help="domain of the generated row (default: the study's domain)")
     parser.add_argument("--attempt", action="append", default=[], metavar="NAME=EVALUATION",
                         help="evaluation of one run of a remedy tried on the generated row (repeatable)")
+    parser.add_argument("--generator-iterations", type=int, default=None,
+                        help="training iterations of the generator behind the generated row (labels strength curves)")
     parser.add_argument("--pool-labels", required=True, help="the labeler's labels of the real pool (their accuracy)")
     parser.add_argument("--labeler-evaluation", required=True, help="evaluate-segmentor output of the labeler")
     data_source_arg(parser)
@@ -53,6 +55,10 @@ def run(args) -> int:
     if unknown:
         raise InputError(None, f"attempt(s) {', '.join(sorted(unknown))} are not in experiments.gda_decomposition.attempts")
     studies = dc.decomposition(evals, attempts, args.evalset)
+    for study in studies.values():
+        curves = dc.strength_curves(study, requested["attempts"], args.generator_iterations)
+        if curves:
+            study["strength_curves"], study["strength_trend"] = curves, dc.strength_trend(curves)
     pool = read_json(Path(args.pool_labels) / SIDECAR, "pseudo-label folder has no sidecar.json")
     first = evals[0]
     setup = {"dataset": first["train"]["info"]["dataset"], "percent": first["train"]["info"]["percent"],
@@ -105,6 +111,11 @@ def run(args) -> int:
                 std = f" +- {100 * link['std']:.2f}" if link["std"] is not None else ""
                 print(f"  link {name:<11} costs {100 * link['mean']:.2f}{std} mIoU points ({' - '.join(dc.LINKS[name])})")
         print(f"  costliest link: {study['costliest_link']}")
+        for curve in study.get("strength_curves", {}).values():
+            gains = ", ".join(f"{st:g}: {100 * g:.2f}" for st, g in zip(curve["strength"], curve["gain_mean"]))
+            cross = curve["crossing_strength"]
+            print(f"  generator {curve['iterations']} it., gain by strength {gains}; stops paying at "
+                  + (f"strength {cross:.2f}" if cross is not None else "no strength measured"))
     warn_about_labeler(labeler_check)
     print(f"result: {args.out}  figure: {args.figure}")
     return 0

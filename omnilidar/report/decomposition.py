@@ -182,6 +182,76 @@ def decomposition(evaluations: list[dict], attempts: dict[str, list[dict]] | Non
     return out
 
 
+def _edit_point(override: dict, main_iterations: int | None) -> tuple[int | None, float] | None:
+    """(generator iterations, sampling strength) of an attempt that changes nothing but those two,
+    else None: the attempts that make a point of a strength curve."""
+    gen = override.get("generator")
+    if set(override) != {"generator"} or not gen or set(gen) - {"sampling", "training"}:
+        return None
+    if set(gen.get("sampling", {})) - {"strength"} or set(gen.get("training", {})) - {"iterations"}:
+        return None
+    return gen.get("training", {}).get("iterations", main_iterations), float(gen.get("sampling", {}).get("strength", 1.0))
+
+
+def crossing_strength(strengths: list[float], gains: list[float]) -> float | None:
+    """Where the mean gain first falls below 0 going from the real scans (strength 0) to fresh
+    samples (1), by linear interpolation between the two points around it; None when it never
+    does or is below 0 from the start."""
+    for (s0, g0), (s1, g1) in zip(zip(strengths, gains), zip(strengths[1:], gains[1:])):
+        if g0 >= 0 > g1:
+            return s0 + (s1 - s0) * g0 / (g0 - g1)
+    return None
+
+
+def strength_curves(study: dict, attempts: dict, main_iterations: int | None) -> dict:
+    """Gain over supervised-only against the sampling strength, one curve per generator budget.
+
+    An SDEdit attempt (``generator.sampling.strength`` < 1, nothing else changed but the generator's
+    iterations) starts each generated scan from a real training scan noised to t = strength; the
+    plain generated row (and an attempt with only other iterations) is strength 1, the pool through
+    the range image with the labeler's labels (round_trip_pseudo) strength 0. ``crossing_strength``:
+    how much of a scan the generator can make before the scans stop paying."""
+    points: dict[int | None, dict[float, tuple[str, dict]]] = {main_iterations: {1.0: ("generated", study["rows"]["generated"])}}
+    for name, override in attempts.items():
+        where = _edit_point(override, main_iterations)
+        if where is not None and name in study["attempts"]:
+            points.setdefault(where[0], {})[where[1]] = (name, study["attempts"][name])
+    anchor = study["rows"].get("round_trip_pseudo")
+    curves = {}
+    for iterations, by_strength in sorted(points.items(), key=lambda kv: kv[0] or 0):
+        if not any(0 < st < 1 for st in by_strength):
+            continue
+        if anchor is not None:
+            by_strength = {0.0: ("round_trip_pseudo", anchor), **by_strength}
+        order = sorted(by_strength)
+        gains = [by_strength[st][1]["gain_over_supervised"] for st in order]
+        curves[str(iterations)] = {
+            "iterations": iterations, "strength": order, "rows": [by_strength[st][0] for st in order],
+            "gain_mean": [g["mean"] for g in gains], "gain_std": [g["std"] for g in gains],
+            "gain_per_seed": [g["per_seed"] for g in gains],
+            "crossing_strength": crossing_strength(order, [g["mean"] for g in gains])}
+    return curves
+
+
+def strength_trend(curves: dict) -> dict:
+    """Crossing strength against log10(generator iterations), least squares over the budgets
+    that have one: at what budget the crossing would reach strength 1 (fresh samples paying).
+    With two budgets it is the line through them: a direction, not a measured trend."""
+    known = [(c["iterations"], c["crossing_strength"]) for c in curves.values()
+             if c["iterations"] and c["crossing_strength"] is not None]
+    out = {"budgets": [k[0] for k in known], "crossing_strengths": [k[1] for k in known],
+           "slope_per_decade": None, "iterations_at_strength_1": None}
+    if len({k[0] for k in known}) < 2:
+        return out | {"note": "fewer than two generator budgets with a crossing"}
+    x = np.log10([k[0] for k in known])
+    slope, intercept = np.polyfit(x, [k[1] for k in known], 1)
+    out["slope_per_decade"] = float(slope)
+    if slope <= 0:
+        return out | {"note": "the crossing does not move towards fresh samples with more compute"}
+    return out | {"iterations_at_strength_1": float(10 ** ((1.0 - intercept) / slope)),
+                  "note": "the line through two budgets" if len(known) == 2 else f"a fit over {len(known)} budgets"}
+
+
 def decomposition_figure(path: str | Path, doc: dict) -> None:
     """One panel per backbone: each row's mean val mIoU with its standard deviation and every
     seed as a dot; a dashed line at supervised-only. Written atomically as PNG."""
@@ -189,9 +259,10 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
 
     studies = doc["backbones"]
     chained = all(all(k in st["links"] for k in CHAIN) for st in studies.values())
-    fig, axes = plt.subplots(2 if chained else 1, len(studies), figsize=(max(5.6 * len(studies), 6.4),
-                                                                         7.4 if chained else 4.4),
-                             squeeze=False, gridspec_kw={"height_ratios": [2.2, 1]} if chained else None)
+    curved = all(st.get("strength_curves") for st in studies.values())
+    heights = [2.2] + [1] * chained + [1.6] * curved
+    fig, axes = plt.subplots(len(heights), len(studies), figsize=(max(5.6 * len(studies), 6.4), 2.3 * sum(heights)),
+                             squeeze=False, gridspec_kw={"height_ratios": heights})
     colors = {"supervised_only": "#7f7f7f", "real_truth": "#2ca02c", "real_pseudo": "#98df8a", "generated": "#1f77b4",
               "lasermix": "#ff7f0e", SIMULATED: "#9467bd", "round_trip_truth": "#17becf",
               "round_trip_pseudo": "#9edae5"}
@@ -224,6 +295,21 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
             ax.invert_yaxis()
             ax.set_xlabel("mIoU points lost along the link (seed-paired)", fontsize=8)
             ax.grid(axis="x", alpha=0.3)
+    if curved:  # how much of a scan the generator can make before it stops paying
+        for ax, (backbone, study) in zip(axes[-1], studies.items()):
+            for i, curve in enumerate(study["strength_curves"].values()):
+                color, cross = f"C{i}", curve["crossing_strength"]
+                label = f"generator {curve['iterations']} iterations" + (f", pays up to {cross:.2f}" if cross is not None else "")
+                ax.errorbar(curve["strength"], [100 * g for g in curve["gain_mean"]],
+                            yerr=[100 * (e or 0.0) for e in curve["gain_std"]], marker="o", capsize=3, color=color,
+                            label=label)
+                if cross is not None:
+                    ax.axvline(cross, color=color, ls=":", lw=1)
+            ax.axhline(0, color="k", ls="--", lw=0.8)
+            ax.set_xlabel("sampling strength (0: the real scan, 1: a fresh sample)", fontsize=8)
+            ax.set_ylabel("gain over supervised only (points)", fontsize=8)
+            ax.legend(fontsize=7)
+            ax.grid(alpha=0.3)
     setup = doc["setup"]
     fig.suptitle(f"GDA decomposition: {setup['percent']:g} % labels + N = {setup['scans']} scans\n"
                  f"({setup['domain']} samples for GDA, scored on {setup['evalset']})", fontsize=10)

@@ -79,6 +79,20 @@ def gda_decomposition(doc: dict) -> str:
             diff = st["attempts"][name]["gain_over_generated"]
             lines.append(f"  - attempt `{name}` against the plain generated row: {_pm(diff['mean'], diff['std'])} points "
                          f"(seed by seed {_seeds(diff['per_seed'])}).")
+        for curve in st.get("strength_curves", {}).values():
+            gains = ", ".join(f"{sv:g}: {_pm(m, e)}" for sv, m, e in zip(curve["strength"], curve["gain_mean"],
+                                                                      curve["gain_std"]))
+            cross = curve["crossing_strength"]
+            lines.append(f"  - generator of {curve['iterations']} iterations, gain over supervised only by sampling "
+                         f"strength: {gains}; " + (f"stops paying at strength {cross:.2f}." if cross is not None
+                                                  else "no crossing in the measured strengths."))
+        trend = st.get("strength_trend")
+        if trend and trend["slope_per_decade"] is not None:
+            where = (f"it would reach strength 1 (fresh samples paying) near {trend['iterations_at_strength_1']:.3g} "
+                     f"generator iterations ({trend['note']})" if trend["iterations_at_strength_1"]
+                     else trend["note"])
+            lines.append(f"  - the crossing moves {trend['slope_per_decade']:+.2f} in strength per decade of generator "
+                         f"iterations: {where}.")
     return "\n".join(lines + ["", _labeler_line(doc)])
 
 
