@@ -586,15 +586,17 @@ TRAINED_ATTEMPTS = [name for name in GENERATOR_ATTEMPTS if set(STUDY_VARIANTS[na
 
 
 def generator_attempt_pattern(trained=True):
-    """Wildcard pattern of the attempts that train their own generator, or (``trained=False``) of
-    every attempt that samples its own scans (none: matches nothing)."""
-    return "|".join(TRAINED_ATTEMPTS if trained else GENERATOR_ATTEMPTS) or r"(?!)"
+    """Wildcard pattern of the attempts that train a generator of their own, or (``trained=False``)
+    of every attempt that samples its own scans (none: matches nothing)."""
+    names = sorted(set(GENERATOR_OWNER.values())) if trained else GENERATOR_ATTEMPTS
+    return "|".join(names) or r"(?!)"
 
 
 def attempt_checkpoint(attempt):
-    """What an attempt samples: its own generator, or the main one (its student where asked)."""
+    """What an attempt samples: its own generator (or that of an attempt that trains the same one),
+    or the main one (its student where asked)."""
     if attempt in TRAINED_ATTEMPTS:
-        return f"{GENERATOR}/attempt-{attempt}/model.pt"
+        return f"{GENERATOR}/attempt-{GENERATOR_OWNER[attempt]}/model.pt"
     student = STUDY_VARIANTS[attempt]["generator"].get("sampling", {}).get("student", False)
     return f"{GENERATOR}/full/{'student' if student else 'model'}.pt"
 
@@ -614,6 +616,17 @@ def attempt_generator_settings(name, drop=()):
 
     merged = deep_merge(config["generator"], STUDY_VARIANTS[name]["generator"])
     return json.dumps({k: v for k, v in merged.items() if k not in drop}, sort_keys=True)
+
+
+def _trained_settings(name):
+    return attempt_generator_settings(name, drop=("sampling", "distillation"))
+
+
+# Attempts whose generators would train identically share one: the first of them trains it (e.g. a
+# budget and the SDEdit attempts that sample the same longer-trained generator at other strengths).
+GENERATOR_OWNER = {}
+for _name in TRAINED_ATTEMPTS:
+    GENERATOR_OWNER[_name] = next(o for o in TRAINED_ATTEMPTS if _trained_settings(o) == _trained_settings(_name))
 
 
 def attempt_dirs(name, dirs, root):
@@ -690,7 +703,7 @@ def budget_run_evaluations():
 def budget_generator(iterations):
     """The generator checkpoint trained ``iterations`` steps."""
     variant = budget_variant(iterations)
-    return f"{GENERATOR}/full/model.pt" if variant is None else f"{GENERATOR}/attempt-{variant}/model.pt"
+    return f"{GENERATOR}/full/model.pt" if variant is None else attempt_checkpoint(variant)
 
 
 def budget_samples(iterations):

@@ -281,6 +281,32 @@ def test_a_generator_attempt_samples_and_labels_from_its_own_generator(workdir):
     assert res.returncode != 0 and "attempts.long.generator may not change sampling" in res.stdout + res.stderr
 
 
+def test_sdedit_attempts_start_from_the_domains_scans_and_share_a_generator_trained_alike(workdir):
+    """Attempts that set generator.sampling.strength sample from the domain's training scans (the
+    domains index is their input); attempts whose generators would train alike share one."""
+    from workflow_helpers import snakemake
+
+    (workdir / "edit.yaml").write_text(
+        "downstream: {experiments: {gda_decomposition: {backbones: [minkunet], attempts: {"
+        "long: {generator: {training: {iterations: 1500}}}, "
+        "long_edit50: {generator: {training: {iterations: 1500}, sampling: {strength: 0.5}}}, "
+        "edit50: {generator: {sampling: {strength: 0.5}}}}}}}\n")
+    args = ("results/gda_decomposition.json", "--configfile", "config/config.yaml", "edit.yaml")
+    jobs = _jobs(workdir, *args)
+    assert jobs["train_generator"] == 1 and jobs["train_generator_attempt"] == 1  # long and long_edit50 share it
+    assert jobs["sample_attempt"] == 3 * jobs["sample_domain"]
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", *args).stdout
+    samples = [line for line in out.splitlines() if "omnilidar sample " in line]
+    by_dir = {line.split("--out ")[1].split()[0].rsplit("/", 2)[0]: line for line in samples}
+    assert "--domains" not in by_dir["data/samples"] and "--domains" not in by_dir["data/samples/attempt-long"]
+    for name, checkpoint in (("edit50", "full"), ("long_edit50", "attempt-long")):
+        line = by_dir[f"data/samples/attempt-{name}"]
+        assert "--domains data/domains/index.json" in line and '"strength": 0.5' in line
+        assert f"--checkpoint data/generator/{checkpoint}/model.pt" in line
+    result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
+    assert "--generator-iterations 300" in result and result.count("--attempt long_edit50=") == 3
+
+
 def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simulated_fog(workdir):
     """results/gda_decomposition_fog.json: the four real rows are the main study's runs scored on
     the fog corrupted sets; the generated row takes Fog samples, the simulated row the pool through
