@@ -454,9 +454,11 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
               "gda": [0.04, 0.06], "lasermix": [0.15, 0.16], "round_trip_truth": [0.19, 0.21],
               "round_trip_pseudo": [0.16, 0.18]}
     evals = [_seeded("minkunet", role, m, s) for role, ms in values.items() for s, m in enumerate(ms)]
-    runs = {"edit50": [0.13, 0.15], "edit75": [0.09, 0.11], "long_edit75": [0.12, 0.14], "long": [0.08, 0.10],
-            "share25": [0.2, 0.2]}
-    requested = {"edit50": {"generator": {"sampling": {"strength": 0.5}}},
+    runs = {"sources": [0.16, 0.18], "long_sources": [0.16, 0.18], "edit50": [0.13, 0.15], "edit75": [0.09, 0.11],
+            "long_edit75": [0.12, 0.14], "long": [0.08, 0.10], "share25": [0.2, 0.2]}
+    requested = {"sources": {"generator": {"sampling": {"strength": 0.001}}},
+                 "long_sources": {"generator": {"training": {"iterations": 3000}, "sampling": {"strength": 0.001}}},
+                 "edit50": {"generator": {"sampling": {"strength": 0.5}}},
                  "edit75": {"generator": {"sampling": {"strength": 0.75}}},
                  "long_edit75": {"generator": {"training": {"iterations": 3000}, "sampling": {"strength": 0.75}}},
                  "long": {"generator": {"training": {"iterations": 3000}}},
@@ -466,11 +468,11 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
     curves = dc.strength_curves(study, requested, 300)
     assert list(curves) == ["300", "3000"]
     main_curve, long_curve = curves["300"], curves["3000"]
-    assert main_curve["strength"] == [0.0, 0.5, 0.75, 1.0]
-    assert main_curve["rows"] == ["round_trip_pseudo", "edit50", "edit75", "generated"]
+    assert main_curve["strength"] == [0.001, 0.5, 0.75, 1.0]
+    assert main_curve["rows"] == ["sources", "edit50", "edit75", "generated"]
     assert main_curve["gain_mean"] == pytest.approx([0.06, 0.03, -0.01, -0.06])
     assert main_curve["crossing_strength"] == pytest.approx(0.5 + 0.25 * 0.03 / 0.04)  # between 0.5 and 0.75
-    assert long_curve["strength"] == [0.0, 0.75, 1.0] and long_curve["gain_mean"] == pytest.approx([0.06, 0.02, -0.02])
+    assert long_curve["strength"] == [0.001, 0.75, 1.0] and long_curve["gain_mean"] == pytest.approx([0.06, 0.02, -0.02])
     assert long_curve["crossing_strength"] == pytest.approx(0.875)
     trend = dc.strength_trend(curves)
     slope = (0.875 - main_curve["crossing_strength"]) / 1.0  # one decade of iterations
@@ -483,7 +485,7 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
                               "b": {"iterations": 3000, "crossing_strength": 0.5}})
     assert flat["iterations_at_strength_1"] is None and "does not move" in flat["note"]
     # Without a strength attempt there is no curve.
-    assert dc.strength_curves(study, {"share25": requested["share25"]}, 300) == {}
+    assert dc.strength_curves(study, {"share25": requested["share25"], "long": requested["long"]}, 300) == {}
     # README's block and the figure show them.
     from omnilidar.report.readme import gda_decomposition
 
@@ -491,7 +493,7 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
     doc = {"backbones": {"minkunet": study}, "setup": {"evalset": "val", "percent": 1, "scans": 2, "domain": "vehicle"},
            "attempts": requested}
     text = gda_decomposition(doc)
-    assert "generator of 300 iterations, gain over supervised only by sampling strength: 0: 6.00 +- 0.00, 0.5: 3.00 +- 0.00" in text
+    assert "generator of 300 iterations, gain over supervised only by sampling strength: 0.001: 6.00 +- 0.00, 0.5: 3.00 +- 0.00" in text
     assert "stops paying at strength 0.69" in text and "per decade of generator iterations" in text
     dc.decomposition_figure(tmp_path / "fig.png", doc)
     assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG"

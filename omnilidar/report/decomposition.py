@@ -207,22 +207,20 @@ def strength_curves(study: dict, attempts: dict, main_iterations: int | None) ->
     """Gain over supervised-only against the sampling strength, one curve per generator budget.
 
     An SDEdit attempt (``generator.sampling.strength`` < 1, nothing else changed but the generator's
-    iterations) starts each generated scan from a real training scan noised to t = strength; the
-    plain generated row (and an attempt with only other iterations) is strength 1, the pool through
-    the range image with the labeler's labels (round_trip_pseudo) strength 0. ``crossing_strength``:
-    how much of a scan the generator can make before the scans stop paying."""
+    iterations) starts each generated scan from one of the generator's training scans noised to
+    t = strength; the plain generated row (and an attempt with only other iterations) is strength 1.
+    A tiny strength (e.g. 0.001) gives the training scans themselves, labelled: what the generator's
+    data is worth. ``crossing_strength``: how much of a scan the generator can make before the scans
+    stop paying."""
     points: dict[int | None, dict[float, tuple[str, dict]]] = {main_iterations: {1.0: ("generated", study["rows"]["generated"])}}
     for name, override in attempts.items():
         where = _edit_point(override, main_iterations)
         if where is not None and name in study["attempts"]:
             points.setdefault(where[0], {})[where[1]] = (name, study["attempts"][name])
-    anchor = study["rows"].get("round_trip_pseudo")
     curves = {}
     for iterations, by_strength in sorted(points.items(), key=lambda kv: kv[0] or 0):
         if not any(0 < st < 1 for st in by_strength):
             continue
-        if anchor is not None:
-            by_strength = {0.0: ("round_trip_pseudo", anchor), **by_strength}
         order = sorted(by_strength)
         gains = [by_strength[st][1]["gain_over_supervised"] for st in order]
         curves[str(iterations)] = {
@@ -306,7 +304,10 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
                 if cross is not None:
                     ax.axvline(cross, color=color, ls=":", lw=1)
             ax.axhline(0, color="k", ls="--", lw=0.8)
-            ax.set_xlabel("sampling strength (0: the real scan, 1: a fresh sample)", fontsize=8)
+            if "round_trip_pseudo" in study["rows"]:  # the pool's real scans, at the generator's image size
+                ax.axhline(100 * study["rows"]["round_trip_pseudo"]["gain_over_supervised"]["mean"], color="#9edae5",
+                           ls="-.", lw=1, label=ROW_LABELS["round_trip_pseudo"])
+            ax.set_xlabel("sampling strength (0: the generator's training scan, 1: a fresh sample)", fontsize=8)
             ax.set_ylabel("gain over supervised only (points)", fontsize=8)
             ax.legend(fontsize=7)
             ax.grid(alpha=0.3)
