@@ -305,6 +305,10 @@ def test_sdedit_attempts_start_from_the_domains_scans_and_share_a_generator_trai
         assert f"--checkpoint data/generator/{checkpoint}/model.pt" in line
     result = next(line for line in out.splitlines() if "omnilidar gda-decomposition" in line)
     assert "--generator-iterations 300" in result and result.count("--attempt long_edit50=") == 3
+    # The shipped sweep trains its longer generator once for all of its attempts.
+    jobs = _jobs(workdir, "results/gda_decomposition.json", "--configfile", "config/config.yaml",
+                 "config/strength_sweep.yaml")
+    assert jobs["train_generator_attempt"] == 1 and jobs["train_study"] == (7 + 11) * 3
 
 
 def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simulated_fog(workdir):
