@@ -495,6 +495,10 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
     text = gda_decomposition(doc)
     assert "generator of 300 iterations, gain over supervised only by sampling strength: 0.001: 6.00 +- 0.00, 0.5: 3.00 +- 0.00" in text
     assert "stops paying at strength 0.69" in text and "per decade of generator iterations" in text
+    from omnilidar.report.readme import strength_short
+
+    short = strength_short(doc)  # README's view: the curves alone
+    assert "stops paying at strength 0.69" in short and "+N real" not in short
     dc.decomposition_figure(tmp_path / "fig.png", doc)
     assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG"
 

@@ -79,21 +79,38 @@ def gda_decomposition(doc: dict) -> str:
             diff = st["attempts"][name]["gain_over_generated"]
             lines.append(f"  - attempt `{name}` against the plain generated row: {_pm(diff['mean'], diff['std'])} points "
                          f"(seed by seed {_seeds(diff['per_seed'])}).")
-        for curve in st.get("strength_curves", {}).values():
-            gains = ", ".join(f"{sv:g}: {_pm(m, e)}" for sv, m, e in zip(curve["strength"], curve["gain_mean"],
-                                                                      curve["gain_std"]))
-            cross = curve["crossing_strength"]
-            lines.append(f"  - generator of {curve['iterations']} iterations, gain over supervised only by sampling "
-                         f"strength: {gains}; " + (f"stops paying at strength {cross:.2f}." if cross is not None
-                                                  else "no crossing in the measured strengths."))
-        trend = st.get("strength_trend")
-        if trend and trend["slope_per_decade"] is not None:
-            where = (f"it would reach strength 1 (fresh samples paying) near {trend['iterations_at_strength_1']:.3g} "
-                     f"generator iterations ({trend['note']})" if trend["iterations_at_strength_1"]
-                     else trend["note"])
-            lines.append(f"  - the crossing moves {trend['slope_per_decade']:+.2f} in strength per decade of generator "
-                         f"iterations: {where}.")
+        lines += ["  " + line for line in _strength_lines(st)]
     return "\n".join(lines + ["", _labeler_line(doc)])
+
+
+def _strength_lines(study: dict) -> list[str]:
+    """One backbone's SDEdit strength curves (gain over supervised-only by sampling strength, per
+    generator) and how the strength where they stop paying moves with the generator's iterations."""
+    lines = []
+    for curve in study.get("strength_curves", {}).values():
+        gains = ", ".join(f"{sv:g}: {_pm(m, e)}" for sv, m, e in zip(curve["strength"], curve["gain_mean"],
+                                                                  curve["gain_std"]))
+        cross = curve["crossing_strength"]
+        lines.append(f"- generator of {curve['iterations']} iterations, gain over supervised only by sampling "
+                     f"strength: {gains}; " + (f"stops paying at strength {cross:.2f}." if cross is not None
+                                              else "no crossing in the measured strengths."))
+    trend = study.get("strength_trend")
+    if trend and trend["slope_per_decade"] is not None:
+        where = (f"it would reach strength 1 (fresh samples paying) near {trend['iterations_at_strength_1']:.3g} "
+                 f"generator iterations ({trend['note']})" if trend["iterations_at_strength_1"] else trend["note"])
+        lines.append(f"- the crossing moves {trend['slope_per_decade']:+.2f} in strength per decade of generator "
+                     f"iterations: {where}.")
+    elif trend:
+        lines.append(f"- where the curves stop paying cannot be followed across budgets: {trend['note']}.")
+    return lines
+
+
+def strength_short(doc: dict) -> str:
+    """README's view of a strength sweep: per backbone, only its curves and their trend."""
+    lines = []
+    for backbone, study in doc["backbones"].items():
+        lines += [f"{backbone} (seeds {', '.join(str(s) for s in study['seeds'])}):", ""] + _strength_lines(study) + [""]
+    return "\n".join(lines)
 
 
 def gda_budget(doc: dict) -> str:
@@ -366,6 +383,9 @@ PREFIXES = {"bench_": benchmark, "student_": student_check, "gda_decomposition_"
             "run_cost_": run_cost}
 
 
+SHORT = {run_cost: run_cost_short, gda_decomposition: strength_short}  # NAME.short: the same file, briefly
+
+
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
     """``text`` with every results block rewritten from ``results/<name>.json``."""
 
@@ -374,7 +394,7 @@ def render_page(text: str, results: Path, page: str | Path | None = None) -> str
         renderer = RENDERERS.get(name)
         for prefix, by_prefix in PREFIXES.items():  # kept runs and benchmarks: one file each, one renderer
             if renderer is None and name.startswith(prefix):
-                renderer = run_cost_short if by_prefix is run_cost and name.endswith(".short") else by_prefix
+                renderer = SHORT.get(by_prefix, by_prefix) if name.endswith(".short") else by_prefix
         if renderer is None:
             raise InputError(page, f"unknown results block {name!r} (known: {', '.join(RENDERERS)}, "
                                    f"{', '.join(p + '<name>' for p in PREFIXES)})")
