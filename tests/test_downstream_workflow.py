@@ -308,7 +308,7 @@ def test_sdedit_attempts_start_from_the_domains_scans_and_share_a_generator_trai
     # The shipped sweep trains its longer generator once for all of its attempts.
     jobs = _jobs(workdir, "results/gda_decomposition.json", "--configfile", "config/config.yaml",
                  "config/strength_sweep.yaml")
-    assert jobs["train_generator_attempt"] == 1 and jobs["train_study"] == (7 + 11) * 3
+    assert jobs["train_generator_attempt"] == 1 and jobs["train_study"] == (7 + 15) * 3
 
 
 def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simulated_fog(workdir):
