@@ -484,6 +484,10 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
     flat = dc.strength_trend({"a": {"iterations": 300, "crossing_strength": 0.6},
                               "b": {"iterations": 3000, "crossing_strength": 0.5}})
     assert flat["iterations_at_strength_1"] is None and "does not move" in flat["note"]
+    creeping = dc.strength_trend({"a": {"iterations": 300, "crossing_strength": 0.007},
+                                  "b": {"iterations": 3000, "crossing_strength": 0.008}})
+    assert creeping["slope_per_decade"] == pytest.approx(0.001)
+    assert creeping["iterations_at_strength_1"] is None and "beyond 1e12" in creeping["note"]
     # Without a strength attempt there is no curve.
     assert dc.strength_curves(study, {"share25": requested["share25"], "long": requested["long"]}, 300) == {}
     # README's block and the figure show them.

@@ -231,6 +231,9 @@ def strength_curves(study: dict, attempts: dict, main_iterations: int | None) ->
     return curves
 
 
+FAR_DECADES = 12  # extrapolations beyond 1e12 generator iterations are reported as out of reach
+
+
 def strength_trend(curves: dict) -> dict:
     """Crossing strength against log10(generator iterations), least squares over the budgets
     that have one: at what budget the crossing would reach strength 1 (fresh samples paying).
@@ -246,8 +249,11 @@ def strength_trend(curves: dict) -> dict:
     out["slope_per_decade"] = float(slope)
     if slope <= 0:
         return out | {"note": "the crossing does not move towards fresh samples with more compute"}
-    return out | {"iterations_at_strength_1": float(10 ** ((1.0 - intercept) / slope)),
-                  "note": "the line through two budgets" if len(known) == 2 else f"a fit over {len(known)} budgets"}
+    how = "the line through two budgets" if len(known) == 2 else f"a fit over {len(known)} budgets"
+    decades = (1.0 - intercept) / slope
+    if decades > FAR_DECADES:  # a crossing that barely moves: no budget anyone could spend
+        return out | {"note": f"{how}: at this rate strength 1 lies beyond 1e{FAR_DECADES} generator iterations"}
+    return out | {"iterations_at_strength_1": float(10 ** decades), "note": how}
 
 
 def decomposition_figure(path: str | Path, doc: dict) -> None:
@@ -297,7 +303,7 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
         for ax, (backbone, study) in zip(axes[-1], studies.items()):
             for i, curve in enumerate(study["strength_curves"].values()):
                 color, cross = f"C{i}", curve["crossing_strength"]
-                label = f"generator {curve['iterations']} iterations" + (f", pays up to {cross:.2f}" if cross is not None else "")
+                label = f"generator {curve['iterations']} iterations" + (f", pays up to {cross:.2g}" if cross is not None else "")
                 ax.errorbar(curve["strength"], [100 * g for g in curve["gain_mean"]],
                             yerr=[100 * (e or 0.0) for e in curve["gain_std"]], marker="o", capsize=3, color=color,
                             label=label)
@@ -307,7 +313,9 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
             if "round_trip_pseudo" in study["rows"]:  # the pool's real scans, at the generator's image size
                 ax.axhline(100 * study["rows"]["round_trip_pseudo"]["gain_over_supervised"]["mean"], color="#9edae5",
                            ls="-.", lw=1, label=ROW_LABELS["round_trip_pseudo"])
-            ax.set_xlabel("sampling strength (0: the generator's training scan, 1: a fresh sample)", fontsize=8)
+            ax.set_xscale("log")  # strengths > 0; what matters happens near the data
+            ax.set_xlabel("sampling strength, log scale (~0: the generator's training scan, 1: a fresh sample)",
+                          fontsize=8)
             ax.set_ylabel("gain over supervised only (points)", fontsize=8)
             ax.legend(fontsize=7)
             ax.grid(alpha=0.3)

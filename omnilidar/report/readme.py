@@ -92,13 +92,13 @@ def _strength_lines(study: dict) -> list[str]:
                                                                   curve["gain_std"]))
         cross = curve["crossing_strength"]
         lines.append(f"- generator of {curve['iterations']} iterations, gain over supervised only by sampling "
-                     f"strength: {gains}; " + (f"stops paying at strength {cross:.2f}." if cross is not None
+                     f"strength: {gains}; " + (f"stops paying at strength {cross:.2g}." if cross is not None
                                               else "no crossing in the measured strengths."))
     trend = study.get("strength_trend")
     if trend and trend["slope_per_decade"] is not None:
         where = (f"it would reach strength 1 (fresh samples paying) near {trend['iterations_at_strength_1']:.3g} "
                  f"generator iterations ({trend['note']})" if trend["iterations_at_strength_1"] else trend["note"])
-        lines.append(f"- the crossing moves {trend['slope_per_decade']:+.2f} in strength per decade of generator "
+        lines.append(f"- the crossing moves {trend['slope_per_decade']:+.2g} in strength per decade of generator "
                      f"iterations: {where}.")
     elif trend:
         lines.append(f"- where the curves stop paying cannot be followed across budgets: {trend['note']}.")
