@@ -471,16 +471,17 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
     assert main_curve["strength"] == [0.001, 0.5, 0.75, 1.0]
     assert main_curve["rows"] == ["sources", "edit50", "edit75", "generated"]
     assert main_curve["gain_mean"] == pytest.approx([0.06, 0.03, -0.01, -0.06])
-    assert main_curve["crossing_strength"] == pytest.approx(0.5 + 0.25 * 0.03 / 0.04)  # between 0.5 and 0.75
+    # between 0.5 and 0.75, linearly in log strength
+    assert main_curve["crossing_strength"] == pytest.approx(10 ** (np.log10(0.5) + np.log10(1.5) * 0.03 / 0.04))
     assert long_curve["strength"] == [0.001, 0.75, 1.0] and long_curve["gain_mean"] == pytest.approx([0.06, 0.02, -0.02])
-    assert long_curve["crossing_strength"] == pytest.approx(0.875)
+    assert long_curve["crossing_strength"] == pytest.approx(0.75 ** 0.5)
     trend = dc.strength_trend(curves)
-    slope = (0.875 - main_curve["crossing_strength"]) / 1.0  # one decade of iterations
+    slope = (0.75 ** 0.5 - main_curve["crossing_strength"]) / 1.0  # one decade of iterations
     assert trend["slope_per_decade"] == pytest.approx(slope)
-    assert trend["iterations_at_strength_1"] == pytest.approx(3000 * 10 ** ((1 - 0.875) / slope))
+    assert trend["iterations_at_strength_1"] == pytest.approx(3000 * 10 ** ((1 - 0.75 ** 0.5) / slope))
     assert "two budgets" in trend["note"]
-    assert dc.crossing_strength([0.0, 1.0], [-0.01, -0.02]) is None  # never pays
-    assert dc.crossing_strength([0.0, 1.0], [0.01, 0.02]) is None  # always pays
+    assert dc.crossing_strength([0.001, 1.0], [-0.01, -0.02]) is None  # never pays
+    assert dc.crossing_strength([0.001, 1.0], [0.01, 0.02]) is None  # always pays
     flat = dc.strength_trend({"a": {"iterations": 300, "crossing_strength": 0.6},
                               "b": {"iterations": 3000, "crossing_strength": 0.5}})
     assert flat["iterations_at_strength_1"] is None and "does not move" in flat["note"]
@@ -498,11 +499,11 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
            "attempts": requested}
     text = gda_decomposition(doc)
     assert "generator of 300 iterations, gain over supervised only by sampling strength: 0.001: 6.00 +- 0.00, 0.5: 3.00 +- 0.00" in text
-    assert "stops paying at strength 0.69" in text and "per decade of generator iterations" in text
+    assert "stops paying at strength 0.68" in text and "per decade of generator iterations" in text
     from omnilidar.report.readme import strength_short
 
     short = strength_short(doc)  # README's view: the curves alone
-    assert "stops paying at strength 0.69" in short and "+N real" not in short
+    assert "stops paying at strength 0.68" in short and "+N real" not in short
     dc.decomposition_figure(tmp_path / "fig.png", doc)
     assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG"
 

@@ -194,12 +194,12 @@ def _edit_point(override: dict, main_iterations: int | None) -> tuple[int | None
 
 
 def crossing_strength(strengths: list[float], gains: list[float]) -> float | None:
-    """Where the mean gain first falls below 0 going from the real scans (strength 0) to fresh
-    samples (1), by linear interpolation between the two points around it; None when it never
-    does or is below 0 from the start."""
+    """Where the mean gain first falls below 0 going from the training scans (strength ~0) to fresh
+    samples (1), interpolated linearly in log strength (strengths span decades) between the two
+    points around it; None when it never does or is below 0 from the start."""
     for (s0, g0), (s1, g1) in zip(zip(strengths, gains), zip(strengths[1:], gains[1:])):
         if g0 >= 0 > g1:
-            return s0 + (s1 - s0) * g0 / (g0 - g1)
+            return float(10 ** (np.log10(s0) + (np.log10(s1) - np.log10(s0)) * g0 / (g0 - g1)))
     return None
 
 
