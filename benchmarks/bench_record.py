@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 import time
@@ -30,7 +31,7 @@ def _command() -> str:
         elif not arg.startswith("--out="):
             argv.append(arg)
     script = Path(sys.argv[0]).resolve().relative_to(Path(__file__).resolve().parents[1])
-    return " ".join(["python", script.as_posix(), *argv])
+    return shlex.join(["python", script.as_posix(), *argv])  # quoted where an argument has spaces
 
 
 def _git(*args: str) -> str:
