@@ -52,7 +52,10 @@ def main() -> None:
         parts = item.split("=")
         if len(parts) != 3:
             raise SystemExit(f"--set takes NAME=SCANS=LABELS, got {item!r}")
-        sets[parts[0]] = label_shares(Path(parts[1]), Path(parts[2]))
+        try:
+            sets[parts[0]] = label_shares(Path(parts[1]), Path(parts[2]))
+        except InputError as err:  # one clear line naming the file, no traceback
+            raise SystemExit(f"error: {err}") from None
     shares = {name: 100 * c / max(c.sum(), 1) for name, (c, _, _) in sets.items()}
     rows = []
     for k, cls in enumerate(CLASS_NAMES, start=1):
