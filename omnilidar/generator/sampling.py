@@ -10,8 +10,9 @@ already on disk. Each scan is written as
     DIR/velodyne/%06d.bin    float32 x, y, z, intensity (SemanticKITTI layout)
 
 named by its global index. With ``sampling.strength`` < 1 scan ``g`` is an SDEdit of one of the
-domain's training scans (:func:`source_scans`), noised to t = strength and denoised. Work goes into ``DIR.partial``; scans already there are
-skipped (resume after interruption) when the partial shard's ``PROVENANCE.json``
+domain's training scans (:func:`source_scans`), noised to t = strength and denoised. Work goes
+into ``DIR.partial``; scans already there are skipped (resume after interruption) when the
+partial shard's ``PROVENANCE.json``
 matches this job's (same checkpoint and prompt contents, settings, seed and code),
 else it starts fresh; every file is written atomically, and only a complete shard
 is renamed to ``DIR``.
