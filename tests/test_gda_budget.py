@@ -116,3 +116,19 @@ def test_a_generator_without_its_training_cost_is_refused():
     with pytest.raises(InputError, match="train_cpu_seconds"):
         bg.budget_record(100, {"path": "g.pt"}, {"metrics": {}, "n_generated": 2},
                          [_seeded("gda", 0.1, 0)], {"seeds": [0], "miou": [0.1]}, {"seeds": [0], "miou": [0.1]})
+
+
+def test_an_earliest_crossing_out_of_any_reach_reads_as_such():
+    """README's budget lines: a crossing the seeds place beyond 1e12 iterations is said to be out of
+    reach, not printed as a 38-digit budget; a reachable one keeps its number."""
+    from pathlib import Path
+
+    from omnilidar.report.readme import gda_budget
+
+    results = Path(__file__).resolve().parents[1] / "docs" / "results"
+    flat = gda_budget(json.loads((results / "gda_budget_prior.json").read_text()))
+    assert "reaches it beyond 1e12 iterations" in flat and "e+37" not in flat
+    rising = json.loads((results / "gda_budget.json").read_text())
+    cross = rising["trend"]["crossings"]["supervised_only"]
+    assert cross["earliest_iterations"] < 1e12
+    assert f"no earlier than {cross['earliest_iterations']:.3g} iterations" in gda_budget(rising)

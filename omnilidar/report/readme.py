@@ -13,6 +13,7 @@ from pathlib import Path
 
 from omnilidar.errors import InputError
 from omnilidar.io.json_file import read_json
+from omnilidar.report.decomposition import FAR_DECADES
 
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9_]+(?:\.short)?) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)",
                    re.S)
@@ -144,9 +145,11 @@ def gda_budget(doc: dict) -> str:
             where = "not reached; " + cross.get("note", "")
         if cross.get("earliest_cpu_minutes"):
             steepest = doc["trend"]["fit"]["steepest_slope_per_decade"]
+            when = (f"beyond 1e{FAR_DECADES} iterations" if cross["earliest_iterations"] > 10 ** FAR_DECADES else
+                    f"no earlier than {cross['earliest_iterations']:.3g} iterations "
+                    f"({cross['earliest_cpu_minutes']:.3g} CPU-minutes)")
             where += (f"; even the steepest rise the seeds allow ({100 * steepest:.2f} points per decade, slope + 2 "
-                      f"standard errors) reaches it no earlier than {cross['earliest_iterations']:.3g} iterations "
-                      f"({cross['earliest_cpu_minutes']:.3g} CPU-minutes)")
+                      f"standard errors) reaches it {when}")
         lines.append(f"- {name.replace('_', ' ')} level ({100 * cross['level_gain']:.2f}): {where}.")
     return "\n".join(lines)
 
