@@ -18,6 +18,7 @@ import numpy as np
 
 from omnilidar.downstream.seg.experiments import seed_statistics
 from omnilidar.errors import InputError
+from omnilidar.report.compute_trend import fit_line
 from omnilidar.report.decomposition import paired_difference
 
 LEVELS = ("supervised_only", "real_pseudo")  # gain 0, and the gain of pseudo-labelled real scans
@@ -44,18 +45,6 @@ def budget_record(iterations: int, generator: dict, quality: dict, runs: list[di
         "gain_over_supervised": paired_difference(stats["miou"], supervised["miou"]),
         "gain_over_real_pseudo": paired_difference(stats["miou"], real_pseudo["miou"]),
     }
-
-
-def fit_line(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float | None]:
-    """Least-squares slope, intercept and the slope's standard error (None with two points or fewer)."""
-    if len(set(x.tolist())) < 2:
-        return 0.0, float(y.mean()), None
-    slope, intercept = np.polyfit(x, y, 1)
-    if len(x) <= 2:
-        return float(slope), float(intercept), None
-    residual = y - (intercept + slope * x)
-    spread = np.sum((x - x.mean()) ** 2)
-    return float(slope), float(intercept), float(np.sqrt(np.sum(residual ** 2) / (len(x) - 2) / spread))
 
 
 def trend(budgets: list[dict], levels: dict[str, float]) -> dict:

@@ -37,6 +37,7 @@ import numpy as np
 
 from omnilidar.downstream.seg.experiments import runs_by_seed, seed_statistics
 from omnilidar.errors import InputError
+from omnilidar.report.compute_trend import FAR_DECADES, fit_line
 
 ROWS = ("supervised_only", "real_truth", "real_pseudo", "generated", "lasermix")
 HELDOUT = "heldout"  # train-split scans outside the subset and the pool: where the regime is checked
@@ -231,9 +232,6 @@ def strength_curves(study: dict, attempts: dict, main_iterations: int | None) ->
     return curves
 
 
-FAR_DECADES = 12  # extrapolations beyond 1e12 generator iterations are reported as out of reach
-
-
 def strength_trend(curves: dict) -> dict:
     """Crossing strength against log10(generator iterations), least squares over the budgets
     that have one: at what budget the crossing would reach strength 1 (fresh samples paying).
@@ -244,9 +242,8 @@ def strength_trend(curves: dict) -> dict:
            "slope_per_decade": None, "iterations_at_strength_1": None}
     if len({k[0] for k in known}) < 2:
         return out | {"note": "fewer than two generator budgets with a crossing"}
-    x = np.log10([k[0] for k in known])
-    slope, intercept = np.polyfit(x, [k[1] for k in known], 1)
-    out["slope_per_decade"] = float(slope)
+    slope, intercept, error = fit_line(np.log10([k[0] for k in known]), np.asarray([k[1] for k in known]))
+    out["slope_per_decade"], out["slope_std_error"] = slope, error
     if slope <= 0:
         return out | {"note": "the crossing does not move towards fresh samples with more compute"}
     how = "the line through two budgets" if len(known) == 2 else f"a fit over {len(known)} budgets"

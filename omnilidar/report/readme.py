@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omnilidar.errors import InputError
 from omnilidar.io.json_file import read_json
-from omnilidar.report.decomposition import FAR_DECADES
+from omnilidar.report.compute_trend import FAR_DECADES
 
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9_]+(?:\.short)?) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)",
                    re.S)
