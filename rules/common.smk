@@ -536,13 +536,13 @@ def round_trip_labels_dir(domain, pct, scans):
 
 def study_settings(row):
     """The downstream training keys with the study's own overrides (experiments.gda_decomposition.training)
-    and, for an attempt's row (gda-<domain>-<name>), the attempt's (its `generator` key aside)."""
+    and, for an attempt's row (gda-<domain>-<name>), the attempt's (its `generator` and `labels` keys aside)."""
     from omnilidar.dicts import deep_merge
 
     merged = deep_merge({k: DOWNSTREAM[k] for k in (*TRAINING_KEYS, "mixing")}, DECOMPOSITION["training"])
     parts = row.split("-")
     if parts[0] == "gda" and len(parts) == 3:
-        overrides = {k: v for k, v in STUDY_VARIANTS[parts[2]].items() if k != "generator"}
+        overrides = {k: v for k, v in STUDY_VARIANTS[parts[2]].items() if k not in ("generator", "labels")}
         merged = deep_merge(merged, overrides)
     return json.dumps(merged, sort_keys=True)
 
@@ -578,6 +578,21 @@ for _name in GENERATOR_ATTEMPTS:
     if {"scans_per_domain", "scans_per_shard"} & set(_sampling):
         sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name}.generator "
                  "may not change sampling.scans_per_domain or scans_per_shard (its samples keep the main shard layout).")
+
+
+# Variants with `labels: carried` train on their SDEdited scans labelled by carry-labels (each pixel
+# keeps its source training scan's true label) instead of by the labeler: what the generator's edits
+# cost the student, apart from what they cost the labeler.
+ATTEMPT_LABELS = ("labeler", "carried")
+for _name, _variant in STUDY_VARIANTS.items():
+    if _variant.get("labels", "labeler") not in ATTEMPT_LABELS:
+        sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name}.labels is "
+                 f"{_variant['labels']!r}; expected one of {', '.join(ATTEMPT_LABELS)}.")
+    if _variant.get("labels") == "carried" and _variant.get("generator", {}).get("sampling", {}).get("strength", 1.0) >= 1.0:
+        sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name} carries its "
+                 "sources' labels, which needs generator.sampling.strength < 1 (fresh samples have no source scan).")
+CARRIED_ATTEMPTS = [name for name, a in STUDY_VARIANTS.items() if a.get("labels") == "carried"]
+CARRIED = f"{DATA}/carried_labels"
 
 
 # Of those, the ones that change more than sampling train their own generator; the others (e.g.
@@ -664,6 +679,8 @@ def study_run_inputs(w):
         if attempt in GENERATOR_ATTEMPTS:
             inputs["samples"] = attempt_dirs(attempt, inputs["samples"], f"{DATA}/samples")
             inputs["pseudo"] = attempt_dirs(attempt, inputs["pseudo"], PSEUDO)
+        if attempt in CARRIED_ATTEMPTS:
+            inputs["pseudo"] = [d.replace(f"{DATA}/samples/", f"{CARRIED}/", 1) for d in inputs["samples"]]
     if kind == "sim":
         inputs["pool"] = simulated_pool_dir(domain, w.pct, w.scans)
     if kind in ("trip", "trippseudo"):

@@ -939,6 +939,28 @@ rule round_trip_pool:
         "--settings {params.settings:q} --out {output} > {log} 2>&1"
 
 
+rule carry_labels:
+    """True labels for an attempt's SDEdited scans (sampling.strength < 1): each pixel keeps its
+    source training scan's label, the labeler-free counterpart of pseudo_label."""
+    input:
+        samples=f"{DATA}/samples/attempt-{{attempt}}/{{domain}}/shard_{{shard}}",
+    output:
+        directory(f"{CARRIED}/attempt-{{attempt}}/{{domain}}/shard_{{shard}}"),
+    wildcard_constraints:
+        attempt="|".join(CARRIED_ATTEMPTS) or r"(?!)",
+        shard=r"\d+",
+    params:
+        code=code("carry-labels"),
+    log:
+        "logs/downstream/carried_labels/attempt-{attempt}/{domain}_{shard}.log",
+    conda:
+        ENV
+    resources:
+        **job_resources("simulate_pool"),
+    shell:
+        "omnilidar carry-labels --samples {input.samples} --out {output} > {log} 2>&1"
+
+
 rule pseudo_label_round_trip:
     """The labeler's labels of the round-tripped pool (the labels link), with their accuracy."""
     input:

@@ -311,6 +311,35 @@ def test_sdedit_attempts_start_from_the_domains_scans_and_share_a_generator_trai
     assert jobs["train_generator_attempt"] == 1 and jobs["train_study"] == (7 + 15) * 3
 
 
+def test_carried_label_attempts_train_on_their_sources_labels_not_the_labelers(workdir):
+    """An SDEdit attempt with `labels: carried` labels its scans with carry-labels (no pseudo-label
+    job) and trains on those; without strength < 1, or with another value, the config is refused."""
+    from workflow_helpers import snakemake
+
+    (workdir / "carried.yaml").write_text(
+        "downstream: {experiments: {gda_decomposition: {backbones: [minkunet], attempts: {"
+        "edit50: {generator: {sampling: {strength: 0.5}}}, "
+        "true50: {labels: carried, generator: {sampling: {strength: 0.5}}}}}}}\n")
+    args = ("results/gda_decomposition.json", "--configfile", "config/config.yaml", "carried.yaml")
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", *args).stdout
+    carry = [line for line in out.splitlines() if "omnilidar carry-labels " in line]
+    pseudo = [line for line in out.splitlines() if "omnilidar pseudo-label " in line and "attempt-" in line]
+    shards = sum("omnilidar sample " in line and "attempt-edit50/" in line for line in out.splitlines())
+    assert len(carry) == shards > 0 and all("--samples data/samples/attempt-true50/" in c for c in carry)
+    assert pseudo and not any("attempt-true50" in line for line in pseudo)
+    runs = [line for line in out.splitlines() if "omnilidar train-segmentor" in line and "study-gda-" in line]
+    true50 = [line for line in runs if "-true50" in line.split("--out ")[1]]
+    assert len(true50) == 3 and all("--pseudo-labels data/carried_labels/attempt-true50/" in r for r in true50)
+    assert all('"labels"' not in r for r in true50)  # not a training key
+    for bad, why in (("{labels: carried, generator: {training: {iterations: 10}}}", "needs generator.sampling.strength < 1"),
+                     ("{labels: truth, generator: {sampling: {strength: 0.5}}}", "expected one of labeler, carried")):
+        (workdir / "bad.yaml").write_text(
+            f"downstream: {{experiments: {{gda_decomposition: {{attempts: {{x: {bad}}}}}}}}}\n")
+        res = snakemake(workdir, "--dry-run", "results/gda_decomposition.json", "--configfile", "config/config.yaml",
+                        "bad.yaml", check=False)
+        assert res.returncode != 0 and why in res.stdout + res.stderr
+
+
 def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simulated_fog(workdir):
     """results/gda_decomposition_fog.json: the four real rows are the main study's runs scored on
     the fog corrupted sets; the generated row takes Fog samples, the simulated row the pool through

@@ -10,7 +10,8 @@ already on disk. Each scan is written as
     DIR/velodyne/%06d.bin    float32 x, y, z, intensity (SemanticKITTI layout)
 
 named by its global index. With ``sampling.strength`` < 1 scan ``g`` is an SDEdit of one of the
-domain's training scans (:func:`source_scans`), noised to t = strength and denoised. Work goes
+domain's training scans (:func:`source_scans`), noised to t = strength and denoised, and
+``DIR/sources.json`` names each scan's training scan (what ``carry-labels`` reads). Work goes
 into ``DIR.partial``; scans already there are skipped (resume after interruption) when the
 partial shard's ``PROVENANCE.json``
 matches this job's (same checkpoint and prompt contents, settings, seed and code),
@@ -40,6 +41,7 @@ from omnilidar.generator.schedule import CosineLogSNRSchedule
 
 TIMING_FILE = "timing.json"
 PROVENANCE_FILE = "PROVENANCE.json"
+SOURCES_FILE = "sources.json"  # strength < 1: each scan's training scan and the image geometry
 
 
 def domain_points_spec(settings: dict, payload: dict, domain: str) -> RangeImageSpec:
@@ -194,6 +196,14 @@ def sample_shard(
               "sampler": sampling["sampler"], "steps": int(sampling["steps"]), "strength": strength,
               "batch_size": bs}
     (partial / TIMING_FILE).write_text(json.dumps(timing, indent=1))
+    if strength < 1.0:  # what carry-labels needs to give each edited scan its source's labels
+        from dataclasses import asdict
+
+        shard_scans = list(range(first, first + scans_per_shard))
+        (partial / SOURCES_FILE).write_text(json.dumps({
+            "strength": strength, "range_image": asdict(points_spec),
+            "scans": {f"{g:06d}": str(src) for g, src in zip(shard_scans, source_scans(sources, seed, domain, shard_scans))},
+        }, indent=1))
     write_manifest(partial)
     if out_dir.exists():
         shutil.rmtree(out_dir)

@@ -92,7 +92,8 @@ def _strength_lines(study: dict) -> list[str]:
         gains = ", ".join(f"{sv:g}: {_pm(m, e)}" for sv, m, e in zip(curve["strength"], curve["gain_mean"],
                                                                   curve["gain_std"]))
         cross = curve["crossing_strength"]
-        lines.append(f"- generator of {curve['iterations']} iterations, gain over supervised only by sampling "
+        labels = " (sources' true labels carried)" if curve.get("labels") == "carried" else ""
+        lines.append(f"- generator of {curve['iterations']} iterations{labels}, gain over supervised only by sampling "
                      f"strength: {gains}; " + (f"stops paying at strength {cross:.2g}." if cross is not None
                                               else "no crossing in the measured strengths."))
     trend = study.get("strength_trend")
