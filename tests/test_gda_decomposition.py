@@ -491,6 +491,18 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
     assert creeping["iterations_at_strength_1"] is None and "beyond 1e12" in creeping["note"]
     # Without a strength attempt there is no curve.
     assert dc.strength_curves(study, {"share25": requested["share25"], "long": requested["long"]}, 300) == {}
+    # Edits under their sources' true labels make a curve of their own, which the trend leaves out.
+    carried = {"true50": {"labels": "carried", "generator": {"sampling": {"strength": 0.5}}},
+               "true001": {"labels": "carried", "generator": {"sampling": {"strength": 0.001}}}}
+    tried |= {"true50": [_seeded("minkunet", "gda", m, s) for s, m in enumerate([0.10, 0.12])],
+              "true001": [_seeded("minkunet", "gda", m, s) for s, m in enumerate([0.15, 0.17])]}
+    with_true = dc.strength_curves(dc.decomposition(evals, tried)["minkunet"], requested | carried, 300)
+    assert list(with_true) == ["300", "300 carried", "3000"] and with_true["300"] == main_curve
+    true_curve = with_true["300 carried"]
+    assert true_curve["labels"] == "carried" and true_curve["rows"] == ["true001", "true50"]
+    assert true_curve["gain_mean"] == pytest.approx([0.05, 0.0]) and true_curve["crossing_strength"] is None
+    true_curve["crossing_strength"] = 0.9  # whatever it is, the labeler's curves alone make the trend
+    assert dc.strength_trend(with_true) == trend
     # README's block and the figure show them.
     from omnilidar.report.readme import gda_decomposition
 
