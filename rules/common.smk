@@ -591,6 +591,10 @@ for _name, _variant in STUDY_VARIANTS.items():
     if _variant.get("labels") == "carried" and _variant.get("generator", {}).get("sampling", {}).get("strength", 1.0) >= 1.0:
         sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name} carries its "
                  "sources' labels, which needs generator.sampling.strength < 1 (fresh samples have no source scan).")
+    if _variant.get("generator", {}).get("sampling", {}).get("keep_source") and \
+            _variant["generator"]["sampling"].get("strength", 1.0) >= 1.0:
+        sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name}.generator."
+                 "sampling.keep_source copies channels from each scan's source scan, which needs strength < 1.")
 CARRIED_ATTEMPTS = [name for name, a in STUDY_VARIANTS.items() if a.get("labels") == "carried"]
 CARRIED = f"{DATA}/carried_labels"
 

@@ -94,3 +94,25 @@ def test_fresh_samples_and_broken_shards_are_refused_with_one_clear_error(model_
     with pytest.raises(InputError, match="no label file"):
         carry_source_labels(edited, tmp_path / "y", progress=False)
     assert not (tmp_path / "y").exists()
+
+
+def test_keep_source_copies_one_channel_back_and_leaves_the_others_edit(model_files, tmp_path):
+    root, settings, cache = model_files
+    files, _ = _domain_shard(tmp_path, settings, n=2)
+    den, payload = load_generator(root / "ckpt.pt")
+    runs = {}
+    for name, keep in (("edit", []), ("keep_i", ["intensity"]), ("keep_r", ["range"])):
+        sampling = dict(settings["sampling"], strength=0.3, keep_source=keep)
+        sample_shard(den, payload, cache, "Fog", 0, 2, sampling, 5, tmp_path / name, log=lambda *_: None, sources=files)
+        runs[name] = [np.load(tmp_path / name / "range" / f"{g:06d}.npz")["image"] for g in range(2)]
+    for g, src in enumerate(source_scans(files, 5, "Fog", [0, 1])):
+        source, edit = np.load(src)["image"], runs["edit"][g]
+        assert np.abs(edit - source).max() > 0.01  # the edit changes both channels
+        np.testing.assert_array_equal(runs["keep_i"][g][1], source[1])
+        np.testing.assert_array_equal(runs["keep_i"][g][0], edit[0])
+        np.testing.assert_array_equal(runs["keep_r"][g][0], source[0])
+        np.testing.assert_array_equal(runs["keep_r"][g][1], edit[1])
+    assert json.loads((tmp_path / "keep_i" / "timing.json").read_text())["keep_source"] == ["intensity"]
+    with pytest.raises(InputError, match="strength < 1"):
+        sample_shard(den, payload, cache, "Fog", 0, 2, dict(settings["sampling"], keep_source=["range"]), 5,
+                     tmp_path / "fresh", log=lambda *_: None, sources=files)

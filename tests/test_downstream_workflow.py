@@ -308,8 +308,8 @@ def test_sdedit_attempts_start_from_the_domains_scans_and_share_a_generator_trai
     # The shipped sweep trains its longer generator once for all of its attempts.
     jobs = _jobs(workdir, "results/gda_decomposition.json", "--configfile", "config/config.yaml",
                  "config/strength_sweep.yaml")
-    assert jobs["train_generator_attempt"] == 1 and jobs["train_study"] == (7 + 20) * 3
-    assert jobs["carry_labels"] == 5 * jobs["sample_domain"]
+    assert jobs["train_generator_attempt"] == 1 and jobs["train_study"] == (7 + 22) * 3
+    assert jobs["carry_labels"] == 7 * jobs["sample_domain"]
 
 
 def test_carried_label_attempts_train_on_their_sources_labels_not_the_labelers(workdir):
@@ -333,7 +333,8 @@ def test_carried_label_attempts_train_on_their_sources_labels_not_the_labelers(w
     assert len(true50) == 3 and all("--pseudo-labels data/carried_labels/attempt-true50/" in r for r in true50)
     assert all('"labels"' not in r for r in true50)  # not a training key
     for bad, why in (("{labels: carried, generator: {training: {iterations: 10}}}", "needs generator.sampling.strength < 1"),
-                     ("{labels: truth, generator: {sampling: {strength: 0.5}}}", "expected one of labeler, carried")):
+                     ("{labels: truth, generator: {sampling: {strength: 0.5}}}", "expected one of labeler, carried"),
+                     ("{generator: {sampling: {keep_source: [range]}}}", "keep_source copies channels")):
         (workdir / "bad.yaml").write_text(
             f"downstream: {{experiments: {{gda_decomposition: {{attempts: {{x: {bad}}}}}}}}}\n")
         res = snakemake(workdir, "--dry-run", "results/gda_decomposition.json", "--configfile", "config/config.yaml",

@@ -10,8 +10,9 @@ already on disk. Each scan is written as
     DIR/velodyne/%06d.bin    float32 x, y, z, intensity (SemanticKITTI layout)
 
 named by its global index. With ``sampling.strength`` < 1 scan ``g`` is an SDEdit of one of the
-domain's training scans (:func:`source_scans`), noised to t = strength and denoised, and
-``DIR/sources.json`` names each scan's training scan (what ``carry-labels`` reads). Work goes
+domain's training scans (:func:`source_scans`), noised to t = strength and denoised (the channels
+in ``sampling.keep_source`` then copied back from it), and ``DIR/sources.json`` names each scan's
+training scan (what ``carry-labels`` reads). Work goes
 into ``DIR.partial``; scans already there are skipped (resume after interruption) when the
 partial shard's ``PROVENANCE.json``
 matches this job's (same checkpoint and prompt contents, settings, seed and code),
@@ -41,6 +42,7 @@ from omnilidar.generator.schedule import CosineLogSNRSchedule
 
 TIMING_FILE = "timing.json"
 PROVENANCE_FILE = "PROVENANCE.json"
+IMAGE_CHANNELS = ("range", "intensity")  # the (2, H, W) image's channels, as encode() writes them
 SOURCES_FILE = "sources.json"  # strength < 1: each scan's training scan and the image geometry
 
 
@@ -138,6 +140,10 @@ def sample_shard(
     if shard < 0 or scans_per_shard < 1:
         raise InputError(None, f"need shard >= 0 and scans per shard >= 1, got {shard}, {scans_per_shard}")
     strength = float(sampling.get("strength", 1.0))
+    kept = [IMAGE_CHANNELS.index(c) for c in sampling.get("keep_source", [])]
+    if kept and strength >= 1.0:
+        raise InputError(None, "generator.sampling.keep_source copies channels from each scan's source scan, "
+                               "which needs generator.sampling.strength < 1")
     if strength < 1.0 and not sources:
         raise InputError(None, f"generator.sampling.strength {strength} starts from the domain's training scans: "
                                "give the domains index (omnilidar sample --domains)")
@@ -179,6 +185,8 @@ def sample_shard(
             points_spec.shape, sampling["sampler"], sampling["steps"], schedule, sampling["ddim_eta"], bf16,
             init=init, strength=strength,
         ).numpy()
+        if kept:  # the source's own values: only the other channel's edit differs from real
+            images[:, kept] = init.numpy()[:, kept]
         for g, img in zip(batch, images):
             if not np.isfinite(img).all():  # cannot happen after clamp/nan_to_num; never write one
                 raise RuntimeError(f"non-finite sample for scan {g}")
@@ -194,6 +202,7 @@ def sample_shard(
     timing = {"scans": len(todo), "resumed_scans": skipped, "seconds": seconds,
               "seconds_per_scan": seconds / len(todo) if todo else None, "device": str(device),
               "sampler": sampling["sampler"], "steps": int(sampling["steps"]), "strength": strength,
+              "keep_source": list(sampling.get("keep_source", [])),
               "batch_size": bs}
     (partial / TIMING_FILE).write_text(json.dumps(timing, indent=1))
     if strength < 1.0:  # what carry-labels needs to give each edited scan its source's labels
