@@ -116,3 +116,26 @@ def test_keep_source_copies_one_channel_back_and_leaves_the_others_edit(model_fi
     with pytest.raises(InputError, match="strength < 1"):
         sample_shard(den, payload, cache, "Fog", 0, 2, dict(settings["sampling"], keep_source=["range"]), 5,
                      tmp_path / "fresh", log=lambda *_: None, sources=files)
+
+
+def test_range_noise_moves_only_the_returns_ranges_by_the_asked_amount_seeded(model_files, tmp_path):
+    from omnilidar.generator.sampling import add_range_noise
+
+    root, settings, cache = model_files
+    files, spec = _domain_shard(tmp_path, settings, n=2)
+    den, payload = load_generator(root / "ckpt.pt")
+    base = dict(settings["sampling"], strength=0.001, keep_source=["intensity"])
+    for name, noise in (("clean", 0.0), ("noisy", 0.02), ("noisy2", 0.02)):
+        sample_shard(den, payload, cache, "Fog", 0, 2, dict(base, range_noise=noise), 5, tmp_path / name,
+                     log=lambda *_: None, sources=files)
+    for g in range(2):
+        clean, noisy = (np.load(tmp_path / n / "range" / f"{g:06d}.npz")["image"] for n in ("clean", "noisy"))
+        np.testing.assert_array_equal(noisy, np.load(tmp_path / "noisy2" / "range" / f"{g:06d}.npz")["image"])
+        np.testing.assert_array_equal(noisy[1], clean[1])  # remission untouched
+        returns = decode(clean, spec)[2]
+        assert (noisy[0][~returns] == clean[0][~returns]).all()  # empty pixels stay empty
+        moved = (noisy[0] - clean[0])[returns]
+        assert abs(moved.std() - 0.02) < 0.004 and abs(moved.mean()) < 0.004
+    image = np.full((2, *spec.shape), -1.0, np.float32)
+    add_range_noise(image, spec, 0.5, np.random.default_rng(0))
+    assert (image == -1.0).all()  # nothing to move in an empty scan

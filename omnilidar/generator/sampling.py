@@ -12,7 +12,8 @@ already on disk. Each scan is written as
 named by its global index. With ``sampling.strength`` < 1 scan ``g`` is an SDEdit of one of the
 domain's training scans (:func:`source_scans`), noised to t = strength and denoised (the channels
 in ``sampling.keep_source`` then copied back from it), and ``DIR/sources.json`` names each scan's
-training scan (what ``carry-labels`` reads). Work goes
+training scan (what ``carry-labels`` reads). ``sampling.range_noise`` adds seeded noise of a known
+size to every return's range after that (a diagnostic). Work goes
 into ``DIR.partial``; scans already there are skipped (resume after interruption) when the
 partial shard's ``PROVENANCE.json``
 matches this job's (same checkpoint and prompt contents, settings, seed and code),
@@ -43,7 +44,8 @@ from omnilidar.generator.schedule import CosineLogSNRSchedule
 TIMING_FILE = "timing.json"
 PROVENANCE_FILE = "PROVENANCE.json"
 IMAGE_CHANNELS = ("range", "intensity")  # the (2, H, W) image's channels, as encode() writes them
-SOURCES_FILE = "sources.json"  # strength < 1: each scan's training scan and the image geometry
+SOURCES_FILE = "sources.json"
+RANGE_NOISE_STREAM = 0x52A6  # keeps sampling.range_noise's draws apart from the sampler's  # strength < 1: each scan's training scan and the image geometry
 
 
 def domain_points_spec(settings: dict, payload: dict, domain: str) -> RangeImageSpec:
@@ -83,6 +85,16 @@ def _check_partial(partial: Path, provenance: dict | None, log) -> None:
     if provenance is not None and not stamp.is_file():
         partial.mkdir(parents=True, exist_ok=True)
         stamp.write_text(json.dumps(provenance, indent=1, sort_keys=True))
+
+
+def add_range_noise(image: np.ndarray, spec, std: float, rng: np.random.Generator) -> None:
+    """Add N(0, std) to the encoded log-range of every return of ``image`` (2, H, W), in place, clipped to
+    [-1, 1]; empty pixels stay empty. ``sampling.range_noise``: a generator of known per-point range
+    precision (std 0.01 is about 2.2 % of the range; ``encode`` maps log2(range + 1) to [-1, 1])."""
+    from omnilidar.data.range_image import decode
+
+    returns = decode(image, spec)[2]
+    image[0][returns] = np.clip(image[0][returns] + std * rng.standard_normal(int(returns.sum())), -1.0, 1.0)
 
 
 def source_scans(files: list[Path], seed: int, domain: str, indices: list[int]) -> list[Path]:
@@ -141,6 +153,7 @@ def sample_shard(
         raise InputError(None, f"need shard >= 0 and scans per shard >= 1, got {shard}, {scans_per_shard}")
     strength = float(sampling.get("strength", 1.0))
     kept = [IMAGE_CHANNELS.index(c) for c in sampling.get("keep_source", [])]
+    range_noise = float(sampling.get("range_noise", 0.0))
     if kept and strength >= 1.0:
         raise InputError(None, "generator.sampling.keep_source copies channels from each scan's source scan, "
                                "which needs generator.sampling.strength < 1")
@@ -190,6 +203,8 @@ def sample_shard(
         for g, img in zip(batch, images):
             if not np.isfinite(img).all():  # cannot happen after clamp/nan_to_num; never write one
                 raise RuntimeError(f"non-finite sample for scan {g}")
+            if range_noise > 0:
+                add_range_noise(img, points_spec, range_noise, rng_for(scan_seed(seed, domain, g), RANGE_NOISE_STREAM))
             rng, inten, valid = decode(img, points_spec)
             write_points(partial / "velodyne" / f"{g:06d}.bin", unproject(rng, inten, points_spec, mask=valid))
             _save_npz_atomic(partial / "range" / f"{g:06d}.npz", img.astype(np.float32))
@@ -202,7 +217,7 @@ def sample_shard(
     timing = {"scans": len(todo), "resumed_scans": skipped, "seconds": seconds,
               "seconds_per_scan": seconds / len(todo) if todo else None, "device": str(device),
               "sampler": sampling["sampler"], "steps": int(sampling["steps"]), "strength": strength,
-              "keep_source": list(sampling.get("keep_source", [])),
+              "keep_source": list(sampling.get("keep_source", [])), "range_noise": range_noise,
               "batch_size": bs}
     (partial / TIMING_FILE).write_text(json.dumps(timing, indent=1))
     if strength < 1.0:  # what carry-labels needs to give each edited scan its source's labels
