@@ -480,8 +480,8 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
     assert trend["slope_per_decade"] == pytest.approx(slope)
     assert trend["iterations_at_strength_1"] == pytest.approx(3000 * 10 ** ((1 - 0.75 ** 0.5) / slope))
     assert "two budgets" in trend["note"]
-    assert dc.crossing_strength([0.001, 1.0], [-0.01, -0.02]) is None  # never pays
-    assert dc.crossing_strength([0.001, 1.0], [0.01, 0.02]) is None  # always pays
+    assert dc.log_crossing([0.001, 1.0], [-0.01, -0.02]) is None  # never pays
+    assert dc.log_crossing([0.001, 1.0], [0.01, 0.02]) is None  # always pays
     flat = dc.strength_trend({"a": {"iterations": 300, "crossing_strength": 0.6},
                               "b": {"iterations": 3000, "crossing_strength": 0.5}})
     assert flat["iterations_at_strength_1"] is None and "does not move" in flat["note"]
@@ -516,6 +516,43 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
 
     short = strength_short(doc)  # README's view: the curves alone
     assert "stops paying at strength 0.68" in short and "+N real" not in short
+    dc.decomposition_figure(tmp_path / "fig.png", doc)
+    assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_range_noise_attempts_make_a_precision_curve_and_place_where_scans_stop_paying(tmp_path):
+    values = {"supervised_only": [0.10, 0.12], "real_truth": [0.20, 0.22], "real_pseudo": [0.17, 0.18],
+              "gda": [0.04, 0.06], "lasermix": [0.15, 0.16], "round_trip_truth": [0.19, 0.21],
+              "round_trip_pseudo": [0.16, 0.18]}
+    evals = [_seeded("minkunet", role, m, s) for role, ms in values.items() for s, m in enumerate(ms)]
+    real = {"labels": "carried", "generator": {"sampling": {"strength": 0.001, "keep_source": ["intensity"]}}}
+
+    def noisy(std):
+        return {**real, "generator": {"sampling": {**real["generator"]["sampling"], "range_noise": std}}}
+
+    requested = {"true001": {"labels": "carried", "generator": {"sampling": {"strength": 0.001}}},
+                 "noise01": noisy(0.01), "noise001": noisy(0.001), "noise1": noisy(0.1),
+                 "labeler_noise": {"generator": {"sampling": {"strength": 0.001, "range_noise": 0.05}}},  # labeler's labels
+                 "edit_noise": {**noisy(0.05), "generator": {"sampling": {"strength": 0.5, "range_noise": 0.05}}}}
+    runs = {"true001": [0.15, 0.17], "noise001": [0.14, 0.16], "noise01": [0.12, 0.14], "noise1": [0.06, 0.08],
+            "labeler_noise": [0.0, 0.0], "edit_noise": [0.0, 0.0]}
+    tried = {n: [_seeded("minkunet", "gda", m, s) for s, m in enumerate(ms)] for n, ms in runs.items()}
+    study = dc.decomposition(evals, tried)["minkunet"]
+    curve = dc.range_noise_curve(study, requested)
+    assert curve["noise_std"] == [0.001, 0.01, 0.1] and curve["rows"] == ["noise001", "noise01", "noise1"]
+    assert curve["gain_mean"] == pytest.approx([0.04, 0.02, -0.04]) and curve["zero"]["row"] == "true001"
+    # between 0.01 and 0.1, linearly in log noise
+    assert curve["crossing_noise"] == pytest.approx(10 ** (-2 + 0.02 / 0.06))
+    assert dc.range_noise_curve(study, {"true001": requested["true001"]}) is None
+    # Noise attempts are not strength points: the strength curves leave them out.
+    assert "noise01" not in str(dc.strength_curves(study, requested, 300))
+    from omnilidar.report.readme import strength_short
+
+    study["range_noise_curve"] = curve
+    doc = {"backbones": {"minkunet": study}, "setup": {"evalset": "val", "percent": 1, "scans": 2, "domain": "vehicle"},
+           "attempts": requested}
+    short = strength_short(doc)
+    assert "without noise (true001) 5.00 +- 0.00; 0.001: 4.00 +- 0.00" in short and "stops paying at 0.022" in short
     dc.decomposition_figure(tmp_path / "fig.png", doc)
     assert (tmp_path / "fig.png").read_bytes()[:4] == b"\x89PNG"
 

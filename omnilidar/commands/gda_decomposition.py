@@ -59,6 +59,9 @@ def run(args) -> int:
         curves = dc.strength_curves(study, requested["attempts"], args.generator_iterations)
         if curves:
             study["strength_curves"], study["strength_trend"] = curves, dc.strength_trend(curves)
+        noise = dc.range_noise_curve(study, requested["attempts"])
+        if noise:
+            study["range_noise_curve"] = noise
     pool = read_json(Path(args.pool_labels) / SIDECAR, "pseudo-label folder has no sidecar.json")
     first = evals[0]
     setup = {"dataset": first["train"]["info"]["dataset"], "percent": first["train"]["info"]["percent"],
@@ -117,6 +120,12 @@ def run(args) -> int:
             labels = ", true labels carried" if curve.get("labels") == "carried" else ""
             print(f"  generator {curve['iterations']} it.{labels}, gain by strength {gains}; stops paying at "
                   + (f"strength {cross:.2g}" if cross is not None else "no strength measured"))
+        noise = study.get("range_noise_curve")
+        if noise:
+            gains = ", ".join(f"{n:g}: {100 * g:.2f}" for n, g in zip(noise["noise_std"], noise["gain_mean"]))
+            cross = noise["crossing_noise"]
+            print(f"  real scans with range noise, true labels, gain by noise std {gains}; stops paying at "
+                  + (f"{cross:.2g}" if cross is not None else "no measured noise"))
     warn_about_labeler(labeler_check)
     print(f"result: {args.out}  figure: {args.figure}")
     return 0

@@ -196,14 +196,46 @@ def _edit_point(override: dict, main_iterations: int | None) -> tuple[int | None
             float(gen.get("sampling", {}).get("strength", 1.0)))
 
 
-def crossing_strength(strengths: list[float], gains: list[float]) -> float | None:
-    """Where the mean gain first falls below 0 going from the training scans (strength ~0) to fresh
-    samples (1), interpolated linearly in log strength (strengths span decades) between the two
-    points around it; None when it never does or is below 0 from the start."""
-    for (s0, g0), (s1, g1) in zip(zip(strengths, gains), zip(strengths[1:], gains[1:])):
+def log_crossing(xs: list[float], gains: list[float]) -> float | None:
+    """Where the mean gain first falls below 0 going up ``xs`` (> 0, spanning decades: sampling
+    strengths, range noise), interpolated linearly in log x between the two points around it;
+    None when it never does or is below 0 from the start."""
+    for (s0, g0), (s1, g1) in zip(zip(xs, gains), zip(xs[1:], gains[1:])):
         if g0 >= 0 > g1:
             return float(10 ** (np.log10(s0) + (np.log10(s1) - np.log10(s0)) * g0 / (g0 - g1)))
     return None
+
+
+NOISE_SAMPLING_KEYS = {"strength", "keep_source", "range_noise"}
+
+
+def range_noise_curve(study: dict, attempts: dict) -> dict | None:
+    """Gain over supervised-only against a known range error: attempts that keep real scans (a
+    strength below 0.01, remission kept or edited alike), carry their true labels and add
+    ``sampling.range_noise`` to every return's encoded log-range. The carried attempt at the same
+    strength without noise is the curve's zero. ``crossing_noise``: how much per-point range noise
+    scans can carry before they stop paying, the precision a generator's ranges must reach."""
+    points, zero = {}, None
+    for name, override in attempts.items():
+        gen, sampling = override.get("generator", {}), override.get("generator", {}).get("sampling", {})
+        if (override.get("labels") != "carried" or set(override) != {"labels", "generator"} or set(gen) != {"sampling"}
+                or set(sampling) - NOISE_SAMPLING_KEYS or sampling.get("strength", 1.0) >= 0.01
+                or name not in study["attempts"]):
+            continue
+        noise = float(sampling.get("range_noise", 0.0))
+        if noise > 0:
+            points[noise] = name
+        elif not sampling.get("keep_source"):
+            zero = name
+    if not points:
+        return None
+    order = sorted(points)
+    gains = [study["attempts"][points[n]]["gain_over_supervised"] for n in order]
+    return {"noise_std": order, "rows": [points[n] for n in order], "gain_mean": [g["mean"] for g in gains],
+            "gain_std": [g["std"] for g in gains], "gain_per_seed": [g["per_seed"] for g in gains],
+            "zero": None if zero is None else {"row": zero, **study["attempts"][zero]["gain_over_supervised"]},
+            "crossing_noise": log_crossing(order, [g["mean"] for g in gains]),
+            "units": "std of the encoded log-range, 2 log2(range + 1) / log2(max_range + 1) - 1"}
 
 
 def strength_curves(study: dict, attempts: dict, main_iterations: int | None) -> dict:
@@ -233,7 +265,7 @@ def strength_curves(study: dict, attempts: dict, main_iterations: int | None) ->
             "iterations": iterations, "labels": labels, "strength": order, "rows": [by_strength[st][0] for st in order],
             "gain_mean": [g["mean"] for g in gains], "gain_std": [g["std"] for g in gains],
             "gain_per_seed": [g["per_seed"] for g in gains],
-            "crossing_strength": crossing_strength(order, [g["mean"] for g in gains])}
+            "crossing_strength": log_crossing(order, [g["mean"] for g in gains])}
     return curves
 
 
@@ -270,7 +302,8 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
     studies = doc["backbones"]
     chained = all(all(k in st["links"] for k in CHAIN) for st in studies.values())
     curved = all(st.get("strength_curves") for st in studies.values())
-    heights = [2.2] + [1] * chained + [1.6] * curved
+    noisy = all(st.get("range_noise_curve") for st in studies.values())
+    heights = [2.2] + [1] * chained + [1.6] * curved + [1.4] * noisy
     fig, axes = plt.subplots(len(heights), len(studies), figsize=(max(5.6 * len(studies), 6.4), 2.3 * sum(heights)),
                              squeeze=False, gridspec_kw={"height_ratios": heights})
     colors = {"supervised_only": "#7f7f7f", "real_truth": "#2ca02c", "real_pseudo": "#98df8a", "generated": "#1f77b4",
@@ -306,7 +339,7 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
             ax.set_xlabel("mIoU points lost along the link (seed-paired)", fontsize=8)
             ax.grid(axis="x", alpha=0.3)
     if curved:  # how much of a scan the generator can make before it stops paying
-        for ax, (backbone, study) in zip(axes[-1], studies.items()):
+        for ax, (backbone, study) in zip(axes[1 + chained], studies.items()):
             for i, curve in enumerate(study["strength_curves"].values()):
                 color, cross = f"C{i}", curve["crossing_strength"]
                 label = (f"generator {curve['iterations']} iterations" + _labels_words(curve)
@@ -322,6 +355,24 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
                            ls="-.", lw=1, label=ROW_LABELS["round_trip_pseudo"])
             ax.set_xscale("log")  # strengths > 0; what matters happens near the data
             ax.set_xlabel("sampling strength, log scale (~0: the generator's training scan, 1: a fresh sample)",
+                          fontsize=8)
+            ax.set_ylabel("gain over supervised only (points)", fontsize=8)
+            ax.legend(fontsize=7)
+            ax.grid(alpha=0.3)
+    if noisy:  # how precise ranges must be: real scans, true labels, known range noise
+        for ax, study in zip(axes[-1], studies.values()):
+            curve = study["range_noise_curve"]
+            ax.errorbar(curve["noise_std"], [100 * g for g in curve["gain_mean"]],
+                        yerr=[100 * (e or 0.0) for e in curve["gain_std"]], marker="o", capsize=3, color="C3",
+                        label="real scans, true labels, range noise added")
+            if curve["zero"] is not None:
+                ax.axhline(100 * curve["zero"]["mean"], color="C3", ls="-.", lw=1, label=f"no noise ({curve['zero']['row']})")
+            if curve["crossing_noise"] is not None:
+                ax.axvline(curve["crossing_noise"], color="C3", ls=":", lw=1,
+                           label=f"stops paying at {curve['crossing_noise']:.2g}")
+            ax.axhline(0, color="k", ls="--", lw=0.8)
+            ax.set_xscale("log")
+            ax.set_xlabel("range noise, std of the encoded log-range (0.01 ~ 2.2 % of the range at KITTI's 80 m)",
                           fontsize=8)
             ax.set_ylabel("gain over supervised only (points)", fontsize=8)
             ax.legend(fontsize=7)

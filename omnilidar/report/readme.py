@@ -96,6 +96,14 @@ def _strength_lines(study: dict) -> list[str]:
         lines.append(f"- generator of {curve['iterations']} iterations{labels}, gain over supervised only by sampling "
                      f"strength: {gains}; " + (f"stops paying at strength {cross:.2g}." if cross is not None
                                               else "no crossing in the measured strengths."))
+    noise = study.get("range_noise_curve")
+    if noise:
+        gains = ", ".join(f"{n:g}: {_pm(m, e)}" for n, m, e in zip(noise["noise_std"], noise["gain_mean"], noise["gain_std"]))
+        zero = f"without noise ({noise['zero']['row']}) {_pm(noise['zero']['mean'], noise['zero']['std'])}; " if noise["zero"] else ""
+        cross = noise["crossing_noise"]
+        lines.append(f"- real scans with their true labels and range noise added, gain over supervised only by the noise's "
+                     f"std in encoded log-range: {zero}{gains}; "
+                     + (f"stops paying at {cross:.2g}." if cross is not None else "no crossing in the measured noise."))
     trend = study.get("strength_trend")
     if trend and trend["slope_per_decade"] is not None:
         where = (f"it would reach strength 1 (fresh samples paying) near {trend['iterations_at_strength_1']:.3g} "
