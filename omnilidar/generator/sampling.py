@@ -44,8 +44,8 @@ from omnilidar.generator.schedule import CosineLogSNRSchedule
 TIMING_FILE = "timing.json"
 PROVENANCE_FILE = "PROVENANCE.json"
 IMAGE_CHANNELS = ("range", "intensity")  # the (2, H, W) image's channels, as encode() writes them
-SOURCES_FILE = "sources.json"
-RANGE_NOISE_STREAM = 0x52A6  # keeps sampling.range_noise's draws apart from the sampler's  # strength < 1: each scan's training scan and the image geometry
+SOURCES_FILE = "sources.json"  # strength < 1: each scan's training scan and the image geometry
+RANGE_NOISE_STREAM = 0x52A6  # keeps sampling.range_noise's draws apart from the sampler's
 
 
 def domain_points_spec(settings: dict, payload: dict, domain: str) -> RangeImageSpec:
