@@ -953,6 +953,8 @@ rule carry_labels:
         code=code("carry-labels"),
     log:
         "logs/downstream/carried_labels/attempt-{attempt}/{domain}_{shard}.log",
+    benchmark:
+        "benchmarks/out/downstream/carried_labels/attempt-{attempt}/{domain}_{shard}.tsv"
     conda:
         ENV
     resources:
