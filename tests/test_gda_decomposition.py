@@ -503,6 +503,16 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
     assert true_curve["gain_mean"] == pytest.approx([0.05, 0.0]) and true_curve["crossing_strength"] is None
     true_curve["crossing_strength"] = 0.9  # whatever it is, the labeler's curves alone make the trend
     assert dc.strength_trend(with_true) == trend
+    # A generator of another recipe (here another prior) makes its own curve, named by what it changes.
+    prior = {"prior02": {"generator": {"diffusion": {"prior": "domain_mean"}, "training": {"iterations": 3000},
+                                       "sampling": {"strength": 0.02}}}}
+    tried |= {"prior02": [_seeded("minkunet", "gda", m, s) for s, m in enumerate([0.11, 0.13])]}
+    with_prior = dc.strength_curves(dc.decomposition(evals, tried)["minkunet"], requested | prior, 300)
+    assert with_prior["3000 (diffusion.prior domain_mean)"]["rows"] == ["prior02"]
+    assert with_prior["3000"] == long_curve and dc.curve_words(with_prior["3000 (diffusion.prior domain_mean)"]) == \
+        " (diffusion.prior domain_mean)"
+    with_prior["3000 (diffusion.prior domain_mean)"]["crossing_strength"] = 0.9
+    assert dc.strength_trend(with_prior) == trend
     # README's block and the figure show them.
     from omnilidar.report.readme import gda_decomposition
 

@@ -117,8 +117,7 @@ def run(args) -> int:
         for curve in study.get("strength_curves", {}).values():
             gains = ", ".join(f"{st:g}: {100 * g:.2f}" for st, g in zip(curve["strength"], curve["gain_mean"]))
             cross = curve["crossing_strength"]
-            labels = ", true labels carried" if curve.get("labels") == "carried" else ""
-            print(f"  generator {curve['iterations']} it.{labels}, gain by strength {gains}; stops paying at "
+            print(f"  generator {curve['iterations']} it.{dc.curve_words(curve)}, gain by strength {gains}; stops paying at "
                   + (f"strength {cross:.2g}" if cross is not None else "no strength measured"))
         noise = study.get("range_noise_curve")
         if noise:

@@ -183,17 +183,28 @@ def decomposition(evaluations: list[dict], attempts: dict[str, list[dict]] | Non
     return out
 
 
-def _edit_point(override: dict, main_iterations: int | None) -> tuple[int | None, str, float] | None:
-    """(generator iterations, labels, sampling strength) of an attempt that changes nothing but those
-    (``labels``: the labeler's, or ``carried`` from each edit's source scan), else None: the attempts
-    that make a point of a strength curve."""
+def _edit_point(override: dict, main_iterations: int | None) -> tuple[int | None, str, str, float] | None:
+    """(generator iterations, recipe, labels, sampling strength) of an attempt that changes only its
+    generator and at most the sampling strength there, else None: the attempts that make a point
+    of a strength curve. ``recipe`` names the generator keys it changes besides the iterations
+    ("" for the main generator's recipe); ``labels`` is the labeler's, or ``carried`` from each
+    edit's source scan."""
     gen = override.get("generator")
-    if set(override) - {"labels"} != {"generator"} or not gen or set(gen) - {"sampling", "training"}:
+    if set(override) - {"labels"} != {"generator"} or not gen or set(gen.get("sampling", {})) - {"strength"}:
         return None
-    if set(gen.get("sampling", {})) - {"strength"} or set(gen.get("training", {})) - {"iterations"}:
-        return None
-    return (gen.get("training", {}).get("iterations", main_iterations), override.get("labels", "labeler"),
+    changed = _flat({k: v for k, v in gen.items() if k != "sampling"})
+    changed.pop("training.iterations", None)
+    recipe = ", ".join(f"{k} {v}" for k, v in sorted(changed.items()))
+    return (gen.get("training", {}).get("iterations", main_iterations), recipe, override.get("labels", "labeler"),
             float(gen.get("sampling", {}).get("strength", 1.0)))
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    """{"a.b": value} for every leaf of a nested dict."""
+    out = {}
+    for k, v in tree.items():
+        out |= _flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v}
+    return out
 
 
 def log_crossing(xs: list[float], gains: list[float]) -> float | None:
@@ -248,29 +259,35 @@ def strength_curves(study: dict, attempts: dict, main_iterations: int | None) ->
     data is worth. ``crossing_strength``: how much of a scan the generator can make before the scans
     stop paying. Attempts with ``labels: carried`` make curves of their own (keyed "<iterations>
     carried"): the same edits under their sources' true labels instead of the labeler's, which
-    splits what the edits cost the labeler from what they cost the student."""
+    splits what the edits cost the labeler from what they cost the student; so do generators of
+    another recipe (other generator keys, keyed "<iterations> (<key value, ...>)")."""
     points: dict[tuple, dict[float, tuple[str, dict]]] = {
-        (main_iterations, "labeler"): {1.0: ("generated", study["rows"]["generated"])}}
+        (main_iterations, "", "labeler"): {1.0: ("generated", study["rows"]["generated"])}}
     for name, override in attempts.items():
         where = _edit_point(override, main_iterations)
         if where is not None and name in study["attempts"]:
-            points.setdefault(where[:2], {})[where[2]] = (name, study["attempts"][name])
+            points.setdefault(where[:3], {})[where[3]] = (name, study["attempts"][name])
     curves = {}
-    for (iterations, labels), by_strength in sorted(points.items(), key=lambda kv: (kv[0][0] or 0, kv[0][1] != "labeler")):
+    for (iterations, recipe, labels), by_strength in sorted(points.items(),
+                                                            key=lambda kv: (kv[0][0] or 0, kv[0][1], kv[0][2] != "labeler")):
         if not any(0 < st < 1 for st in by_strength):
             continue
         order = sorted(by_strength)
         gains = [by_strength[st][1]["gain_over_supervised"] for st in order]
-        curves[str(iterations) + ("" if labels == "labeler" else f" {labels}")] = {
-            "iterations": iterations, "labels": labels, "strength": order, "rows": [by_strength[st][0] for st in order],
+        key = " ".join([str(iterations)] + [f"({recipe})"] * bool(recipe) + [labels] * (labels != "labeler"))
+        curves[key] = {
+            "iterations": iterations, "recipe": recipe, "labels": labels, "strength": order,
+            "rows": [by_strength[st][0] for st in order],
             "gain_mean": [g["mean"] for g in gains], "gain_std": [g["std"] for g in gains],
             "gain_per_seed": [g["per_seed"] for g in gains],
             "crossing_strength": log_crossing(order, [g["mean"] for g in gains])}
     return curves
 
 
-def _labels_words(curve: dict) -> str:
-    return ", sources' true labels" if curve.get("labels") == "carried" else ""
+def curve_words(curve: dict) -> str:
+    """What sets a strength curve apart from the main generator's under the labeler's labels."""
+    return ("" if not curve.get("recipe") else f" ({curve['recipe']})") + (
+        ", sources' true labels" if curve.get("labels") == "carried" else "")
 
 
 def strength_trend(curves: dict) -> dict:
@@ -278,7 +295,8 @@ def strength_trend(curves: dict) -> dict:
     that have one: at what budget the crossing would reach strength 1 (fresh samples paying).
     With two budgets it is the line through them: a direction, not a measured trend."""
     known = [(c["iterations"], c["crossing_strength"]) for c in curves.values()
-             if c["iterations"] and c["crossing_strength"] is not None and c.get("labels", "labeler") == "labeler"]
+             if c["iterations"] and c["crossing_strength"] is not None and c.get("labels", "labeler") == "labeler"
+             and not c.get("recipe")]
     out = {"budgets": [k[0] for k in known], "crossing_strengths": [k[1] for k in known],
            "slope_per_decade": None, "iterations_at_strength_1": None}
     if len({k[0] for k in known}) < 2:
@@ -342,7 +360,7 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
         for ax, (backbone, study) in zip(axes[1 + chained], studies.items()):
             for i, curve in enumerate(study["strength_curves"].values()):
                 color, cross = f"C{i}", curve["crossing_strength"]
-                label = (f"generator {curve['iterations']} iterations" + _labels_words(curve)
+                label = (f"generator {curve['iterations']} iterations" + curve_words(curve)
                          + (f", pays up to {cross:.2g}" if cross is not None else ""))
                 ax.errorbar(curve["strength"], [100 * g for g in curve["gain_mean"]],
                             yerr=[100 * (e or 0.0) for e in curve["gain_std"]], marker="o", capsize=3, color=color,

@@ -14,6 +14,7 @@ from pathlib import Path
 from omnilidar.errors import InputError
 from omnilidar.io.json_file import read_json
 from omnilidar.report.compute_trend import FAR_DECADES
+from omnilidar.report.decomposition import curve_words
 
 BLOCK = re.compile(r"(<!-- results:(?P<name>[a-z0-9_]+(?:\.short)?) -->\n)(?P<body>.*?)(<!-- /results:(?P=name) -->)",
                    re.S)
@@ -92,8 +93,7 @@ def _strength_lines(study: dict) -> list[str]:
         gains = ", ".join(f"{sv:g}: {_pm(m, e)}" for sv, m, e in zip(curve["strength"], curve["gain_mean"],
                                                                   curve["gain_std"]))
         cross = curve["crossing_strength"]
-        labels = " (sources' true labels carried)" if curve.get("labels") == "carried" else ""
-        lines.append(f"- generator of {curve['iterations']} iterations{labels}, gain over supervised only by sampling "
+        lines.append(f"- generator of {curve['iterations']} iterations{curve_words(curve)}, gain over supervised only by sampling "
                      f"strength: {gains}; " + (f"stops paying at strength {cross:.2g}." if cross is not None
                                               else "no crossing in the measured strengths."))
     noise = study.get("range_noise_curve")
