@@ -321,7 +321,7 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
     chained = all(all(k in st["links"] for k in CHAIN) for st in studies.values())
     curved = all(st.get("strength_curves") for st in studies.values())
     noisy = all(st.get("range_noise_curve") for st in studies.values())
-    heights = [2.2] + [1] * chained + [1.6] * curved + [1.4] * noisy
+    heights = [2.2] + [1] * chained + [2.2] * curved + [1.4] * noisy
     fig, axes = plt.subplots(len(heights), len(studies), figsize=(max(5.6 * len(studies), 6.4), 2.3 * sum(heights)),
                              squeeze=False, gridspec_kw={"height_ratios": heights})
     colors = {"supervised_only": "#7f7f7f", "real_truth": "#2ca02c", "real_pseudo": "#98df8a", "generated": "#1f77b4",
@@ -375,18 +375,18 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
             ax.set_xlabel("sampling strength, log scale (~0: the generator's training scan, 1: a fresh sample)",
                           fontsize=8)
             ax.set_ylabel("gain over supervised only (points)", fontsize=8)
-            ax.legend(fontsize=7)
+            ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(0.0, -0.22))  # below: many curves
             ax.grid(alpha=0.3)
     if noisy:  # how precise ranges must be: real scans, true labels, known range noise
         for ax, study in zip(axes[-1], studies.values()):
             curve = study["range_noise_curve"]
             ax.errorbar(curve["noise_std"], [100 * g for g in curve["gain_mean"]],
-                        yerr=[100 * (e or 0.0) for e in curve["gain_std"]], marker="o", capsize=3, color="C3",
+                        yerr=[100 * (e or 0.0) for e in curve["gain_std"]], marker="o", capsize=3, color="k",
                         label="real scans, true labels, range noise added")
             if curve["zero"] is not None:
-                ax.axhline(100 * curve["zero"]["mean"], color="C3", ls="-.", lw=1, label=f"no noise ({curve['zero']['row']})")
+                ax.axhline(100 * curve["zero"]["mean"], color="k", ls="-.", lw=1, label=f"no noise ({curve['zero']['row']})")
             if curve["crossing_noise"] is not None:
-                ax.axvline(curve["crossing_noise"], color="C3", ls=":", lw=1,
+                ax.axvline(curve["crossing_noise"], color="k", ls=":", lw=1,
                            label=f"stops paying at {curve['crossing_noise']:.2g}")
             ax.axhline(0, color="k", ls="--", lw=0.8)
             ax.set_xscale("log")
