@@ -322,7 +322,9 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
     curved = all(st.get("strength_curves") for st in studies.values())
     noisy = all(st.get("range_noise_curve") for st in studies.values())
     heights = [2.2] + [1] * chained + [2.2] * curved + [1.4] * noisy
-    fig, axes = plt.subplots(len(heights), len(studies), figsize=(max(5.6 * len(studies), 6.4), 2.3 * sum(heights)),
+    most = max(len(st["rows"]) + len(st.get("attempts", {})) for st in studies.values())
+    fig, axes = plt.subplots(len(heights), len(studies),
+                             figsize=(max(5.6 * len(studies), 6.4, 0.22 * most * len(studies)), 2.3 * sum(heights)),
                              squeeze=False, gridspec_kw={"height_ratios": heights})
     colors = {"supervised_only": "#7f7f7f", "real_truth": "#2ca02c", "real_pseudo": "#98df8a", "generated": "#1f77b4",
               "lasermix": "#ff7f0e", SIMULATED: "#9467bd", "round_trip_truth": "#17becf",
@@ -338,7 +340,9 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
             seeds = [100 * v for v in rec["miou"]]
             ax.plot(np.full(len(seeds), x[i]) + np.linspace(-0.12, 0.12, len(seeds)), seeds, "k.", ms=4)
         ax.axhline(means[0], color="k", ls="--", lw=0.8)
-        ax.set_xticks(x, [label for label, _, _ in bars], rotation=25, ha="right", fontsize=7)
+        crowded = len(bars) > 15  # a sweep's many attempts: upright labels, one per bar
+        ax.set_xticks(x, [label for label, _, _ in bars], rotation=90 if crowded else 25,
+                      ha="center" if crowded else "right", fontsize=6 if crowded else 7)
         ax.set_ylabel(f"{study['evalset']} mIoU (%)" + (" (mean over severities)" if study["evalset"] != "val" else ""))
         n = len(study["seeds"])
         ax.set_title(f"{backbone} ({'mean +- std over ' + str(n) + ' seeds' if n > 1 else 'one seed'})", fontsize=9)
