@@ -16,7 +16,6 @@ of each, per set.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -24,23 +23,20 @@ import numpy as np
 import bench_record
 from omnilidar.data.range_image import RangeImageSpec, decode
 from omnilidar.errors import InputError
-from omnilidar.generator.sampling import SOURCES_FILE
+from omnilidar.generator.sampling import SOURCES_FILE, read_sources
 
 
 def edit_errors(samples: Path) -> dict[str, list[float]]:
     """Per scan of every shard under ``samples``: the encoded-range error's std, the median relative
     range error, and the shares of returns lost and added against the source."""
-    docs = sorted(samples.glob(f"**/{SOURCES_FILE}"))
-    if not docs:
+    shards = sorted(p.parent for p in samples.glob(f"**/{SOURCES_FILE}"))
+    if not shards:
         raise InputError(samples, f"no {SOURCES_FILE}: not sampled with generator.sampling.strength < 1")
     out = {"encoded_std": [], "relative_median": [], "lost": [], "added": []}
-    for doc_path in docs:
-        doc = json.loads(doc_path.read_text())
+    for shard in shards:
+        doc, edits = read_sources(shard)
         spec = RangeImageSpec(**doc["range_image"])
-        for name, source in sorted(doc["scans"].items()):
-            edit_file = doc_path.parent / "range" / f"{name}.npz"
-            if not edit_file.is_file() or not Path(source).is_file():
-                raise InputError(edit_file if not edit_file.is_file() else source, "listed in sources.json but missing")
+        for _, edit_file, source in edits:
             edit, src = np.load(edit_file)["image"], np.load(source)["image"]
             edit_range, _, edit_hit = decode(edit, spec)
             src_range, _, src_hit = decode(src, spec)

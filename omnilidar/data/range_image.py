@@ -135,6 +135,11 @@ class ProjectionResult:
         """(H, W) bool: pixels holding a return."""
         return self.point_index_img >= 0
 
+    def per_pixel(self, values: np.ndarray, empty=0) -> np.ndarray:
+        """(H, W) each pixel's winning point's entry of ``values`` (N,), e.g. its label; ``empty``
+        where no point landed."""
+        return np.where(self.mask, np.asarray(values)[np.maximum(self.point_index_img, 0)], empty)
+
     @property
     def winner(self) -> np.ndarray:
         """(N,) bool: points that won their pixel (survive a round trip)."""

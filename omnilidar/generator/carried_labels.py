@@ -26,56 +26,38 @@ def source_files(range_file: Path) -> tuple[Path, Path]:
     return shard / "velodyne" / f"{range_file.stem}.bin", shard / "labels" / f"{range_file.stem}.label"
 
 
-def pixel_labels(points: np.ndarray, semantic: np.ndarray, instance: np.ndarray, spec) -> tuple[np.ndarray, np.ndarray]:
-    """(H, W) semantic and instance label of each pixel's nearest return (0 where none)."""
-    from omnilidar.data.range_image import project
-
-    winner = project(points, spec).point_index_img
-    hit = winner >= 0
-    sem = np.zeros(spec.shape, np.uint16)
-    inst = np.zeros(spec.shape, np.uint16)
-    sem[hit], inst[hit] = semantic[winner[hit]], instance[winner[hit]]
-    return sem, inst
-
-
 def carry_source_labels(samples: str | Path, out: str | Path, progress: bool = True) -> dict:
     """Label every scan of an SDEdited sample shard with its source's pixel labels; write
     ``out/labels/X.label`` (raw ids, like pseudo-label's) and ``out/sidecar.json``, atomically.
     Returns the sidecar: per scan the share of points that got a label."""
     from tqdm import tqdm
 
-    from omnilidar.data.range_image import RangeImageSpec, decode
-    from omnilidar.generator.sampling import SOURCES_FILE
+    from omnilidar.data.range_image import RangeImageSpec, decode, project
+    from omnilidar.generator.sampling import read_sources
     from omnilidar.io import semantickitti
     from omnilidar.io.atomic import atomic_path
 
     samples = Path(samples)
-    doc_path = samples / SOURCES_FILE
-    if not doc_path.is_file():
-        raise InputError(samples, f"has no {SOURCES_FILE}: only scans sampled with generator.sampling.strength < 1 "
-                                  "start from a training scan whose labels can be carried")
-    doc = json.loads(doc_path.read_text())
+    doc, edits = read_sources(samples)
     spec = RangeImageSpec(**doc["range_image"])
     scans = []
     with atomic_path(Path(out)) as tmp:
         (tmp / "labels").mkdir(parents=True)
-        for name, source in tqdm(sorted(doc["scans"].items()), desc=f"carry labels {samples.name}",
-                                 file=sys.stderr, disable=not progress, mininterval=2.0):
-            points_file, labels_file = source_files(Path(source))
+        for name, image_file, source in tqdm(edits, desc=f"carry labels {samples.name}", file=sys.stderr,
+                                             disable=not progress, mininterval=2.0):
+            points_file, labels_file = source_files(source)
             if not labels_file.is_file():
                 raise InputError(labels_file, f"source of sampled scan {name} has no label file to carry")
             points = semantickitti.read_points(points_file)
-            sem, inst = pixel_labels(points, *semantickitti.read_label(labels_file, len(points)), spec)
-            image_file = samples / "range" / f"{name}.npz"
-            if not image_file.is_file():
-                raise InputError(image_file, "sampled scan listed in sources.json is missing")
+            proj = project(points, spec)  # each pixel's nearest return carries its labels
+            sem, inst = (proj.per_pixel(v) for v in semantickitti.read_label(labels_file, len(points)))
             valid = decode(np.load(image_file)["image"], spec)[2]  # sample_shard's own points, row-major
             count = (samples / "velodyne" / f"{name}.bin").stat().st_size // 16
             if count != int(valid.sum()):
                 raise InputError(samples / "velodyne" / f"{name}.bin",
                                  f"holds {count} points but its range image decodes to {int(valid.sum())}")
             semantickitti.write_label(tmp / "labels" / f"{name}.label", sem[valid], inst[valid])
-            scans.append({"name": name, "source": source, "points": count,
+            scans.append({"name": name, "source": str(source), "points": count,
                           "labelled_share": float((sem[valid] > 0).mean()) if count else None})
         side = {"samples": str(samples), "strength": doc["strength"], "scans": scans}
         (tmp / "sidecar.json").write_text(json.dumps(side, indent=1))

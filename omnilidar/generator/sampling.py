@@ -97,6 +97,24 @@ def add_range_noise(image: np.ndarray, spec, std: float, rng: np.random.Generato
     image[0][returns] = np.clip(image[0][returns] + std * rng.standard_normal(int(returns.sum())), -1.0, 1.0)
 
 
+def read_sources(shard: str | Path) -> tuple[dict, list[tuple[str, Path, Path]]]:
+    """An SDEdited shard's ``sources.json`` and, per scan, (name, its range image, its source's range
+    image); one error naming the shard when it was not sampled with strength < 1, or naming a
+    listed file that is missing."""
+    shard = Path(shard)
+    path = shard / SOURCES_FILE
+    if not path.is_file():
+        raise InputError(shard, f"has no {SOURCES_FILE}: only scans sampled with generator.sampling.strength < 1 "
+                                "start from a training scan")
+    doc = json.loads(path.read_text())
+    scans = [(name, shard / "range" / f"{name}.npz", Path(source)) for name, source in sorted(doc["scans"].items())]
+    for name, edit, source in scans:
+        for f in (edit, source):
+            if not f.is_file():
+                raise InputError(f, f"scan {name} of {path} is missing")
+    return doc, scans
+
+
 def source_scans(files: list[Path], seed: int, domain: str, indices: list[int]) -> list[Path]:
     """The training scans that global scans ``indices`` of ``domain`` start from (strength < 1):
     a seeded permutation of the domain's scans, so that scans 0..len(files)-1 all differ."""

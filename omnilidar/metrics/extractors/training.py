@@ -52,8 +52,7 @@ def labelled_views(entries: list[dict], spec: RangeImageSpec) -> tuple[dict, np.
         sem, _ = read_label(entry["labels"], len(pts))
         ids = to_train_ids(sem)
         proj = project(pts, spec)
-        win = proj.point_index_img
-        labels.append(np.where(win >= 0, ids[np.maximum(win, 0)], 0).astype(np.int64))
+        labels.append(proj.per_pixel(ids).astype(np.int64))
         images.append(encode(proj.range_img, proj.intensity_img, spec))
     return range_views(np.stack(images), spec), np.stack(labels)
 
