@@ -228,7 +228,8 @@ def range_noise_curve(study: dict, attempts: dict) -> dict | None:
     scans can carry before they stop paying, the precision a generator's ranges must reach."""
     points, zero = {}, None
     for name, override in attempts.items():
-        gen, sampling = override.get("generator", {}), override.get("generator", {}).get("sampling", {})
+        gen = override.get("generator", {})
+        sampling = gen.get("sampling", {})
         if (override.get("labels") != "carried" or set(override) != {"labels", "generator"} or set(gen) != {"sampling"}
                 or set(sampling) - NOISE_SAMPLING_KEYS or sampling.get("strength", 1.0) >= 0.01
                 or name not in study["attempts"]):
