@@ -536,13 +536,14 @@ def round_trip_labels_dir(domain, pct, scans):
 
 def study_settings(row):
     """The downstream training keys with the study's own overrides (experiments.gda_decomposition.training)
-    and, for an attempt's row (gda-<domain>-<name>), the attempt's (its `generator` and `labels` keys aside)."""
+    and, for an attempt's row (gda-<domain>-<name>), the attempt's (its `generator`, `labels` and `labeler`
+    keys aside)."""
     from omnilidar.dicts import deep_merge
 
     merged = deep_merge({k: DOWNSTREAM[k] for k in (*TRAINING_KEYS, "mixing")}, DECOMPOSITION["training"])
     parts = row.split("-")
     if parts[0] == "gda" and len(parts) == 3:
-        overrides = {k: v for k, v in STUDY_VARIANTS[parts[2]].items() if k not in ("generator", "labels")}
+        overrides = {k: v for k, v in STUDY_VARIANTS[parts[2]].items() if k not in ("generator", "labels", "labeler")}
         merged = deep_merge(merged, overrides)
     return json.dumps(merged, sort_keys=True)
 
@@ -597,6 +598,59 @@ for _name, _variant in STUDY_VARIANTS.items():
                  "sampling.keep_source copies channels from each scan's source scan, which needs strength < 1.")
 CARRIED_ATTEMPTS = [name for name, a in STUDY_VARIANTS.items() if a.get("labels") == "carried"]
 CARRIED = f"{DATA}/carried_labels"
+
+
+# Variants with a `labeler` key label their generated row with a labeler of their own: the
+# downstream.labeler section with those keys laid over it (for example a labeler trained with
+# augmentation.range_jitter, robust to the range error of generated scans). Attempts whose labelers
+# would be the same share one, made by the first of them: data/labeler/attempt-<owner>.pt (and its
+# val scores beside it); the attempt's labels live under attempt-<name>/ like a generator attempt's.
+def attempt_labeler_section(name):
+    """downstream.labeler with attempt ``name``'s labeler keys laid over it, validated."""
+    from omnilidar.dicts import deep_merge
+
+    merged = deep_merge(DOWNSTREAM["labeler"], STUDY_VARIANTS[name]["labeler"])
+    try:
+        return validate({"labeler": merged}, "downstream.schema.yaml", source="config")["labeler"]
+    except InputError as err:
+        sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{name}.labeler: {err}")
+
+
+LABELER_ATTEMPTS = [name for name, a in STUDY_VARIANTS.items() if "labeler" in a]
+LABELER_OWNER = {}
+for _name in LABELER_ATTEMPTS:
+    if STUDY_VARIANTS[_name].get("labels") == "carried":
+        sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name} sets both "
+                 "labels: carried and a labeler of its own; carried labels use no labeler.")
+    LABELER_OWNER[_name] = next(o for o in LABELER_ATTEMPTS
+                                if attempt_labeler_section(o) == attempt_labeler_section(_name))
+
+
+def labeler_attempt(domain_path):
+    """The attempt whose own labeler labels a pseudo-label folder (attempt-<name>/<domain>), else None."""
+    name = domain_path.split(os.sep, 1)[0].removeprefix("attempt-")
+    return name if domain_path.startswith("attempt-") and name in LABELER_OWNER else None
+
+
+def attempt_labeler(name):
+    """Checkpoint of attempt ``name``'s own labeler."""
+    return f"{DATA}/labeler/attempt-{LABELER_OWNER[name]}.pt"
+
+
+def pseudo_label_inputs(w):
+    """What labels a pseudo-label shard: the attempt's own labeler where it has one, else the fixed
+    labeler; the shard's samples (the main ones for an attempt that changes only the labeler)."""
+    name = labeler_attempt(w.domain)
+    samples = f"{DATA}/samples/{w.domain}/shard_{w.shard}"
+    if name and name not in GENERATOR_ATTEMPTS:
+        samples = f"{DATA}/samples/{w.domain.split('/', 1)[1]}/shard_{w.shard}"
+    return {"labeler": attempt_labeler(name) if name else LABELER, "samples": samples}
+
+
+def pseudo_label_settings(w):
+    """The labeler section behind that shard's labeler, as one JSON value."""
+    name = labeler_attempt(w.domain)
+    return json.dumps(attempt_labeler_section(name) if name else DOWNSTREAM["labeler"], sort_keys=True)
 
 
 # Of those, the ones that change more than sampling train their own generator; the others (e.g.
@@ -682,6 +736,8 @@ def study_run_inputs(w):
         inputs["pseudo"] = pseudo_label_shards(domain, w.scans)
         if attempt in GENERATOR_ATTEMPTS:
             inputs["samples"] = attempt_dirs(attempt, inputs["samples"], f"{DATA}/samples")
+            inputs["pseudo"] = attempt_dirs(attempt, inputs["pseudo"], PSEUDO)
+        elif attempt in LABELER_ATTEMPTS:
             inputs["pseudo"] = attempt_dirs(attempt, inputs["pseudo"], PSEUDO)
         if attempt in CARRIED_ATTEMPTS:
             inputs["pseudo"] = [d.replace(f"{DATA}/samples/", f"{CARRIED}/", 1) for d in inputs["samples"]]

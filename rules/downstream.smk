@@ -87,6 +87,35 @@ use rule train_labeler as train_labeler_segment with:
         "benchmarks/out/downstream/labeler.part{part}of{parts}.tsv"
 
 
+rule train_labeler_attempt:
+    """The labeler of a decomposition attempt that has one of its own (attempts.<name>.labeler laid
+    over downstream.labeler), trained like the fixed one on 100 % of the real train split."""
+    input:
+        index=f"{DATA}/index/semantickitti.json",
+    output:
+        f"{DATA}/labeler/attempt-{{attempt}}.pt",
+    wildcard_constraints:
+        attempt="|".join(sorted(set(LABELER_OWNER.values()))) or r"(?!)",
+    params:
+        settings=lambda w: json.dumps(attempt_labeler_section(w.attempt), sort_keys=True),
+        seed=config["seed"],
+        work_dir=lambda w: f"work/labeler/attempt-{w.attempt}",
+        code=code("train-labeler"),
+    log:
+        "logs/downstream/labeler_attempt-{attempt}.log",
+    benchmark:
+        "benchmarks/out/downstream/labeler_attempt-{attempt}.tsv"
+    conda:
+        ENV
+    threads: 1
+    priority: GDA_CHAIN_PRIORITY
+    resources:
+        **job_resources("train_labeler"),
+    shell:
+        "omnilidar train-labeler --index {input.index} --settings {params.settings:q} --seed {params.seed} "
+        "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
+
+
 rule evaluate_labeler:
     """The labeler's own per-class IoU and mIoU on the SemanticKITTI val split (the quality of
     every pseudo-label a GDA run learns from)."""
@@ -112,17 +141,29 @@ rule evaluate_labeler:
         "--settings {params.settings:q} --threads {threads} --out {output} > {log} 2>&1"
 
 
-rule pseudo_label:
-    """Pseudo-labels (raw SemanticKITTI ids) for one shard of generated scans."""
+use rule evaluate_labeler as evaluate_labeler_attempt with:
     input:
-        labeler=LABELER,
-        samples=f"{DATA}/samples/{{domain}}/shard_{{shard}}",
+        checkpoint=f"{DATA}/labeler/attempt-{{attempt}}.pt",
+        index=f"{DATA}/index/semantickitti.json",
+    output:
+        f"{DATA}/labeler/attempt-{{attempt}}.val.json",
+    log:
+        "logs/downstream/evaluate/labeler_attempt-{attempt}.val.log",
+    benchmark:
+        "benchmarks/out/downstream/evaluate/labeler_attempt-{attempt}.val.tsv"
+
+
+rule pseudo_label:
+    """Pseudo-labels (raw SemanticKITTI ids) for one shard of generated scans (an attempt's labeler
+    where it has one of its own)."""
+    input:
+        unpack(pseudo_label_inputs),
     output:
         directory(f"{PSEUDO}/{{domain}}/shard_{{shard}}"),
     wildcard_constraints:
         shard=r"\d+",
     params:
-        settings=settings("downstream", "labeler"),
+        settings=pseudo_label_settings,
         code=code("pseudo-label"),
     log:
         f"logs/downstream/pseudo_labels/{{domain}}_{{shard}}.log",
@@ -788,6 +829,7 @@ rule gda_decomposition:
         attempts=[a.split("=", 1)[1] for a in attempt_evaluations(DECOMPOSITION["domain"], "val")],
         pool_labels=pool_labels_dir(DECOMPOSITION["percent"], DECOMPOSITION_SCANS),
         labeler=LABELER_VAL,
+        attempt_labelers=[attempt_labeler(a).replace(".pt", ".val.json") for a in LABELER_ATTEMPTS],
     output:
         json="results/gda_decomposition.json",
         table="results/tables/gda_decomposition.html",
@@ -797,6 +839,8 @@ rule gda_decomposition:
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         attempts=" ".join(f"--attempt {a}" for a in attempt_evaluations(DECOMPOSITION["domain"], "val")),
+        attempt_labelers=" ".join(f"--attempt-labeler {a}={attempt_labeler(a).replace('.pt', '.val.json')}"
+                                  for a in LABELER_ATTEMPTS),
         generator_iterations=MAIN_GENERATOR_ITERATIONS,
         code=result_code("gda-decomposition"),
     log:
@@ -811,7 +855,7 @@ rule gda_decomposition:
         with_table(
             "omnilidar gda-decomposition --evaluations {input.evaluations} {params.attempts} "
             "--pool-labels {input.pool_labels} --generator-iterations {params.generator_iterations} "
-            "--labeler-evaluation {input.labeler} --settings {params.settings:q} --seed {params.seed} "
+            "--labeler-evaluation {input.labeler} {params.attempt_labelers} --settings {params.settings:q} --seed {params.seed} "
             "--data-source {params.data_source:q} --out {output.json} --figure {output.figure} > {log} 2>&1"
         )
 

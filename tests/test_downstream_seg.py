@@ -80,6 +80,28 @@ def test_augmentation_is_seeded_rotation_and_scale():
     assert np.array_equal(plain, pts)
 
 
+def test_range_jitter_moves_points_along_their_rays_by_the_asked_size():
+    rng = np.random.default_rng(1)
+    direction = rng.normal(size=(20000, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    dist = rng.uniform(2.0, 60.0, 20000)
+    pts = np.concatenate([direction * dist[:, None], rng.uniform(size=(20000, 1))], axis=1).astype(np.float32)
+    moved = dataset.jitter_ranges(pts, 0.03, np.random.default_rng(5))
+    new_dist = np.linalg.norm(moved[:, :3].astype(np.float64), axis=1)
+    cosine = np.sum(moved[:, :3] * pts[:, :3], axis=1) / (new_dist * dist)
+    assert np.all(cosine > 1 - 1e-5)  # along the ray, outwards or inwards
+    change = np.log(new_dist + 1.0) - np.log(dist + 1.0)
+    assert abs(change.std() - 0.03) < 0.001 and abs(change.mean()) < 0.001
+    assert np.array_equal(moved[:, 3], pts[:, 3])
+    assert np.array_equal(moved, dataset.jitter_ranges(pts, 0.03, np.random.default_rng(5)))  # seeded
+    # Through augment: 0 changes nothing (the draws of rotation and scale come first); > 0 jitters.
+    plain = dataset.augment(pts, dataset.draw_rng(3, 7), True, (0.95, 1.05))
+    assert np.array_equal(plain, dataset.augment(pts, dataset.draw_rng(3, 7), True, (0.95, 1.05), 0.0))
+    jittered = dataset.augment(pts, dataset.draw_rng(3, 7), True, (0.95, 1.05), 0.05)
+    assert not np.array_equal(plain, jittered)
+    assert np.allclose(np.arctan2(jittered[:, 1], jittered[:, 0]), np.arctan2(plain[:, 1], plain[:, 0]), atol=1e-4)
+
+
 def test_mixing_plans():
     concat = {"mode": "concat", "generated_share": 0.5}
     plan = dataset.epoch_plan(3, 5, concat, 0, 0)

@@ -245,6 +245,25 @@ def test_decomposition_plans_every_row_backbone_and_seed(workdir):
     assert result.count("--attempt share25=") == result.count("--attempt confident=") == 6
 
 
+def _attempts_overlay(workdir, name, attempts):
+    """Snakemake arguments of the decomposition (MinkUNet only) with an overlay holding these
+    attempts (flow-style YAML), written to <name>.yaml."""
+    (workdir / f"{name}.yaml").write_text(
+        f"downstream: {{experiments: {{gda_decomposition: {{backbones: [minkunet], attempts: {{{attempts}}}}}}}}}\n")
+    return ("results/gda_decomposition.json", "--configfile", "config/config.yaml", f"{name}.yaml")
+
+
+def _refusal(workdir, attempts):
+    """What a dry run of the decomposition prints for an overlay holding these attempts (flow-style
+    YAML), and its exit status."""
+    from workflow_helpers import snakemake
+
+    (workdir / "bad.yaml").write_text(f"downstream: {{experiments: {{gda_decomposition: {{attempts: {attempts}}}}}}}\n")
+    res = snakemake(workdir, "--dry-run", "results/gda_decomposition.json", "--configfile", "config/config.yaml",
+                    "bad.yaml", check=False)
+    return res.returncode, res.stdout + res.stderr
+
+
 def test_a_generator_attempt_samples_and_labels_from_its_own_generator(workdir):
     """attempts.<name>.generator: the generated row is trained again on scans from a generator with
     those keys laid over the generator section (here a longer run), sampled and pseudo-labelled
@@ -273,12 +292,8 @@ def test_a_generator_attempt_samples_and_labels_from_its_own_generator(workdir):
     assert len(plain) == 3 and all("--samples data/samples/Vehicle/shard_0" in line for line in plain)
     assert "--checkpoint data/generator/attempt-long/model.pt" in out
     # The attempt may not move the shard layout its rows are read from.
-    (workdir / "bad.yaml").write_text(
-        "downstream: {experiments: {gda_decomposition: {attempts: {long: {generator: "
-        "{sampling: {scans_per_shard: 3}}}}}}}\n")
-    res = snakemake(workdir, "--dry-run", "results/gda_decomposition.json", "--configfile", "config/config.yaml",
-                    "bad.yaml", check=False)
-    assert res.returncode != 0 and "attempts.long.generator may not change sampling" in res.stdout + res.stderr
+    code, said = _refusal(workdir, "{long: {generator: {sampling: {scans_per_shard: 3}}}}")
+    assert code != 0 and "attempts.long.generator may not change sampling" in said
 
 
 def test_sdedit_attempts_start_from_the_domains_scans_and_share_a_generator_trained_alike(workdir):
@@ -286,12 +301,10 @@ def test_sdedit_attempts_start_from_the_domains_scans_and_share_a_generator_trai
     domains index is their input); attempts whose generators would train alike share one."""
     from workflow_helpers import snakemake
 
-    (workdir / "edit.yaml").write_text(
-        "downstream: {experiments: {gda_decomposition: {backbones: [minkunet], attempts: {"
+    args = _attempts_overlay(workdir, "edit", (
         "long: {generator: {training: {iterations: 1500}}}, "
         "long_edit50: {generator: {training: {iterations: 1500}, sampling: {strength: 0.5}}}, "
-        "edit50: {generator: {sampling: {strength: 0.5}}}}}}}\n")
-    args = ("results/gda_decomposition.json", "--configfile", "config/config.yaml", "edit.yaml")
+        "edit50: {generator: {sampling: {strength: 0.5}}}"))
     jobs = _jobs(workdir, *args)
     assert jobs["train_generator"] == 1 and jobs["train_generator_attempt"] == 1  # long and long_edit50 share it
     assert jobs["sample_attempt"] == 3 * jobs["sample_domain"]
@@ -308,7 +321,8 @@ def test_sdedit_attempts_start_from_the_domains_scans_and_share_a_generator_trai
     # The shipped sweep trains its longer generator once for all of its attempts.
     jobs = _jobs(workdir, "results/gda_decomposition.json", "--configfile", "config/config.yaml",
                  "config/strength_sweep.yaml")
-    assert jobs["train_generator_attempt"] == 2 and jobs["train_study"] == (7 + 29) * 3
+    assert jobs["train_generator_attempt"] == 2 and jobs["train_study"] == (7 + 30) * 3
+    assert jobs["train_labeler_attempt"] == 1  # prior_robust02's labeler
     assert jobs["carry_labels"] == 12 * jobs["sample_domain"]
 
 
@@ -317,11 +331,9 @@ def test_carried_label_attempts_train_on_their_sources_labels_not_the_labelers(w
     job) and trains on those; without strength < 1, or with another value, the config is refused."""
     from workflow_helpers import snakemake
 
-    (workdir / "carried.yaml").write_text(
-        "downstream: {experiments: {gda_decomposition: {backbones: [minkunet], attempts: {"
+    args = _attempts_overlay(workdir, "carried", (
         "edit50: {generator: {sampling: {strength: 0.5}}}, "
-        "true50: {labels: carried, generator: {sampling: {strength: 0.5}}}}}}}\n")
-    args = ("results/gda_decomposition.json", "--configfile", "config/config.yaml", "carried.yaml")
+        "true50: {labels: carried, generator: {sampling: {strength: 0.5}}}"))
     out = snakemake(workdir, "--dry-run", "--printshellcmds", *args).stdout
     carry = [line for line in out.splitlines() if "omnilidar carry-labels " in line]
     pseudo = [line for line in out.splitlines() if "omnilidar pseudo-label " in line and "attempt-" in line]
@@ -335,11 +347,49 @@ def test_carried_label_attempts_train_on_their_sources_labels_not_the_labelers(w
     for bad, why in (("{labels: carried, generator: {training: {iterations: 10}}}", "needs generator.sampling.strength < 1"),
                      ("{labels: truth, generator: {sampling: {strength: 0.5}}}", "expected one of labeler, carried"),
                      ("{generator: {sampling: {keep_source: [range]}}}", "keep_source copies channels")):
-        (workdir / "bad.yaml").write_text(
-            f"downstream: {{experiments: {{gda_decomposition: {{attempts: {{x: {bad}}}}}}}}}\n")
-        res = snakemake(workdir, "--dry-run", "results/gda_decomposition.json", "--configfile", "config/config.yaml",
-                        "bad.yaml", check=False)
-        assert res.returncode != 0 and why in res.stdout + res.stderr
+        code, said = _refusal(workdir, f"{{x: {bad}}}")
+        assert code != 0 and why in said
+
+
+def test_labeler_attempts_label_with_a_labeler_of_their_own(workdir):
+    """An attempt with a `labeler` key trains its own labeler (shared by attempts that would train it
+    alike), labels its scans (the main samples, or its own) with it, records its val scores in the
+    result, and keeps the labeler's keys out of the students' settings; bad labeler keys and a
+    labeler beside carried labels are refused at config time."""
+    from workflow_helpers import snakemake
+
+    args = _attempts_overlay(workdir, "robust", (
+        "robust: {labeler: {augmentation: {range_jitter: 0.05}}}, "
+        "robust_too: {labeler: {augmentation: {range_jitter: 0.05}}}, "
+        "robust_edit50: {labeler: {augmentation: {range_jitter: 0.05}}, generator: {sampling: {strength: 0.5}}}"))
+    jobs = _jobs(workdir, *args)
+    assert jobs["train_labeler"] == jobs["train_labeler_attempt"] == jobs["evaluate_labeler_attempt"] == 1
+    out = snakemake(workdir, "--dry-run", "--printshellcmds", *args).stdout
+    lines = out.splitlines()
+    own = next(line for line in lines if "omnilidar train-labeler" in line and "attempt-robust.pt" in line)
+    assert '"range_jitter": 0.05' in own
+    fixed = next(line for line in lines if "omnilidar train-labeler" in line and "semantickitti.pt" in line)
+    assert '"range_jitter": 0' in fixed and '"range_jitter": 0.05' not in fixed
+    pseudo = {line.split("--out ")[1].split()[0]: line for line in lines if "omnilidar pseudo-label --labeler" in line
+              and "--samples" in line}
+    for name, samples in (("robust", "data/samples/Vehicle/"), ("robust_too", "data/samples/Vehicle/"),
+                          ("robust_edit50", "data/samples/attempt-robust_edit50/Vehicle/")):
+        mine = [line for out_dir, line in pseudo.items() if out_dir.startswith(f"data/pseudo_labels/attempt-{name}/")]
+        assert mine and all("--labeler data/labeler/attempt-robust.pt" in m and f"--samples {samples}" in m for m in mine)
+    assert all("--labeler data/labeler/semantickitti.pt" in line for out_dir, line in pseudo.items()
+               if not out_dir.startswith("data/pseudo_labels/attempt-"))
+    runs = [line for line in lines if "omnilidar train-segmentor" in line and "study-gda-" in line]
+    robust = [line for line in runs if "-robust48_" in line.split("--out ")[1]]
+    assert len(robust) == 3 and all("--pseudo-labels data/pseudo_labels/attempt-robust/" in r for r in robust)
+    assert not any('"range_jitter": 0.05' in r or '"labeler"' in r for r in runs)  # not a training key
+    result = next(line for line in lines if "omnilidar gda-decomposition" in line and "--attempt " in line)
+    assert all(f"--attempt-labeler {name}=data/labeler/attempt-robust.val.json" in result
+               for name in ("robust", "robust_too", "robust_edit50"))
+    for bad, why in (("{labels: carried, labeler: {batch_size: 1}, generator: {sampling: {strength: 0.5}}}",
+                      "sets both labels: carried and a labeler of its own"),
+                     ("{labeler: {augmentation: {range_jiter: 0.05}}}", "attempts.x.labeler")):
+        code, said = _refusal(workdir, f"{{x: {bad}}}")
+        assert code != 0 and why in said
 
 
 def test_weather_decomposition_reuses_the_real_rows_and_adds_generated_and_simulated_fog(workdir):

@@ -285,6 +285,22 @@ def test_decomposition_command_writes_result_and_figure(tmp_path, capsys):
     assert doc["pool_pseudo_labels_against_truth"] == {"miou": 0.42} and doc["labeler"]["val_miou"] == 0.3
     assert fig.stat().st_size > 10_000 and fig.read_bytes()[:4] == b"\x89PNG"
     assert "+N real, true labels" in capsys.readouterr().out
+    # An attempt's own labeler is scored beside the fixed one.
+    robust = tmp_path / "robust.json"
+    robust.write_text(json.dumps(_seeded("minkunet", "supervised_only", 0.28, 0)))
+    settings = json.dumps({"experiments": {"gda_decomposition": {"attempts": {"robust": {"labeler": {"batch_size": 1}}}}}})
+    assert main(["gda-decomposition", "--evaluations", *paths, "--pool-labels", str(pool),
+                 "--labeler-evaluation", str(labeler), "--attempt-labeler", f"robust={robust}", "--settings", settings,
+                 "--seed", "0", "--data-source", json.dumps({"semantickitti": {"root": "data/synthetic/semantickitti",
+                                                                              "kind": "synthetic"}}),
+                 "--out", str(out), "--figure", str(fig)]) == 0
+    assert json.loads(out.read_text())["attempt_labelers"]["robust"]["val_miou"] == 0.28
+    assert main(["gda-decomposition", "--evaluations", *paths, "--pool-labels", str(pool),
+                 "--labeler-evaluation", str(labeler), "--attempt-labeler", f"other={robust}", "--settings", settings,
+                 "--seed", "0", "--data-source", json.dumps({"semantickitti": {"root": "x", "kind": "synthetic"}}),
+                 "--out", str(tmp_path / "x.json"),
+                 "--figure", str(fig)]) != 0
+    assert not (tmp_path / "x.json").exists()
     # A missing row: one clear error, nothing written.
     out.unlink()
     assert main(["gda-decomposition", "--evaluations", *paths[:-2], "--pool-labels", str(pool),
@@ -513,6 +529,17 @@ def test_strength_attempts_make_a_curve_per_generator_and_place_where_scans_stop
         " (diffusion.prior domain_mean)"
     with_prior["3000 (diffusion.prior domain_mean)"]["crossing_strength"] = 0.9
     assert dc.strength_trend(with_prior) == trend
+    # So do the same edits under an attempt's own labeler, named by its keys, and out of the trend.
+    robust = {"robust02": {"labeler": {"augmentation": {"range_jitter": 0.05}},
+                           "generator": {"diffusion": {"prior": "domain_mean"}, "training": {"iterations": 3000},
+                                         "sampling": {"strength": 0.02}}}}
+    tried |= {"robust02": [_seeded("minkunet", "gda", m, s) for s, m in enumerate([0.12, 0.14])]}
+    with_robust = dc.strength_curves(dc.decomposition(evals, tried)["minkunet"], requested | prior | robust, 300)
+    key = "3000 (diffusion.prior domain_mean) labeler (augmentation.range_jitter 0.05)"
+    assert with_robust[key]["rows"] == ["robust02"] and with_robust[key]["gain_mean"] == pytest.approx([0.02])
+    assert dc.curve_words(with_robust[key]) == " (diffusion.prior domain_mean), labeler (augmentation.range_jitter 0.05)"
+    with_robust[key]["crossing_strength"] = 0.9
+    assert dc.strength_trend(with_robust) == trend
     # README's block and the figure show them.
     from omnilidar.report.readme import gda_decomposition
 

@@ -23,6 +23,8 @@ def add_arguments(parser) -> None:
                         help="training iterations of the generator behind the generated row (labels strength curves)")
     parser.add_argument("--pool-labels", required=True, help="the labeler's labels of the real pool (their accuracy)")
     parser.add_argument("--labeler-evaluation", required=True, help="evaluate-segmentor output of the labeler")
+    parser.add_argument("--attempt-labeler", action="append", default=[], metavar="NAME=EVALUATION",
+                        help="evaluate-segmentor output of the own labeler of an attempt that has one (repeatable)")
     data_source_arg(parser)
     report_outputs_arg(parser, markdown=False)
 
@@ -51,7 +53,13 @@ def run(args) -> int:
         if not sep or not name or not path:
             raise InputError(None, f"--attempt takes NAME=EVALUATION, got {item!r}")
         attempts.setdefault(name, []).append(read_evaluation(path))
-    unknown = set(attempts) - set(requested["attempts"])
+    attempt_labelers = {}
+    for item in args.attempt_labeler:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise InputError(None, f"--attempt-labeler takes NAME=EVALUATION, got {item!r}")
+        attempt_labelers[name] = labeler_quality(read_evaluation(path))
+    unknown = (set(attempts) | set(attempt_labelers)) - set(requested["attempts"])
     if unknown:
         raise InputError(None, f"attempt(s) {', '.join(sorted(unknown))} are not in experiments.gda_decomposition.attempts")
     studies = dc.decomposition(evals, attempts, args.evalset)
@@ -87,7 +95,7 @@ def run(args) -> int:
     doc = envelope(
         experiment, "gda-decomposition", args.settings, {"seed": args.seed}, timings, args.data_source,
         setup=setup, rows=rows, links=dc.LINKS, attempts=requested["attempts"], backbones=studies,
-        labeler=labeler, labeler_check=labeler_check,
+        labeler=labeler, labeler_check=labeler_check, attempt_labelers=attempt_labelers,
         pool_pseudo_labels_against_truth=pool.get("accuracy_against_truth"),
         miou_convention="miou: semantic-kitti-api (absent classes count as 0)",
     )
@@ -100,7 +108,9 @@ def run(args) -> int:
             print(f"  {dc.ROW_LABELS[row]:<28} mIoU {100 * r['miou_mean']:.2f}{std}")
         for name, r in study["attempts"].items():
             std = f" +- {100 * r['miou_std']:.2f}" if r["miou_std"] is not None else ""
-            print(f"  {'GDA, ' + name:<28} mIoU {100 * r['miou_mean']:.2f}{std}")
+            own = (f" (own labeler: val mIoU {100 * attempt_labelers[name]['val_miou']:.2f})"
+                   if name in attempt_labelers else "")
+            print(f"  {'GDA, ' + name:<28} mIoU {100 * r['miou_mean']:.2f}{std}{own}")
         check = study["regime_check"]
         if check["set"]:
             print(f"  regime check on held-out train scans: ceiling gain {100 * check['ceiling_gain']['mean']:.2f} "

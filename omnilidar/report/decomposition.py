@@ -187,16 +187,23 @@ def _edit_point(override: dict, main_iterations: int | None) -> tuple[int | None
     """(generator iterations, recipe, labels, sampling strength) of an attempt that changes only its
     generator and at most the sampling strength there, else None: the attempts that make a point
     of a strength curve. ``recipe`` names the generator keys it changes besides the iterations
-    ("" for the main generator's recipe); ``labels`` is the labeler's, or ``carried`` from each
-    edit's source scan."""
+    ("" for the main generator's recipe); ``labels`` is the labeler's, ``carried`` from each
+    edit's source scan, or "labeler (<key value, ...>)" for an attempt's own labeler."""
     gen = override.get("generator")
-    if set(override) - {"labels"} != {"generator"} or not gen or set(gen.get("sampling", {})) - {"strength"}:
+    if set(override) - {"labels", "labeler"} != {"generator"} or not gen or set(gen.get("sampling", {})) - {"strength"}:
         return None
     changed = _flat({k: v for k, v in gen.items() if k != "sampling"})
     changed.pop("training.iterations", None)
-    recipe = ", ".join(f"{k} {v}" for k, v in sorted(changed.items()))
-    return (gen.get("training", {}).get("iterations", main_iterations), recipe, override.get("labels", "labeler"),
+    labels = override.get("labels", "labeler")
+    if override.get("labeler"):
+        labels = f"labeler ({_words(_flat(override['labeler']))})"
+    return (gen.get("training", {}).get("iterations", main_iterations), _words(changed), labels,
             float(gen.get("sampling", {}).get("strength", 1.0)))
+
+
+def _words(flat: dict) -> str:
+    """ "key value, ..." of flattened settings, sorted."""
+    return ", ".join(f"{k} {v}" for k, v in sorted(flat.items()))
 
 
 def _flat(tree: dict, prefix: str = "") -> dict:
@@ -287,8 +294,9 @@ def strength_curves(study: dict, attempts: dict, main_iterations: int | None) ->
 
 def curve_words(curve: dict) -> str:
     """What sets a strength curve apart from the main generator's under the labeler's labels."""
+    labels = curve.get("labels", "labeler")
     return ("" if not curve.get("recipe") else f" ({curve['recipe']})") + (
-        ", sources' true labels" if curve.get("labels") == "carried" else "")
+        ", sources' true labels" if labels == "carried" else "" if labels == "labeler" else f", {labels}")
 
 
 def strength_trend(curves: dict) -> dict:

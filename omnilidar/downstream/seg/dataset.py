@@ -140,18 +140,36 @@ def confident_labels(record: dict, labels: np.ndarray, threshold: float) -> np.n
     return np.where(conf >= threshold, labels, 0).astype(labels.dtype)
 
 
-def augment(points: np.ndarray, rng: np.random.Generator, rotation: bool, scale: tuple[float, float]) -> np.ndarray:
-    """Rotate about z by U[0, 2 pi) (if ``rotation``) and scale x, y, z by U[lo, hi]."""
-    out = points.copy()
+def augment(points: np.ndarray, rng: np.random.Generator, rotation: bool, scale: tuple[float, float],
+            range_jitter: float = 0.0) -> np.ndarray:
+    """Rotate about z by U[0, 2 pi) (if ``rotation``) and scale x, y, z by U[lo, hi]; with
+    ``range_jitter`` > 0 first move each point along its ray by :func:`jitter_ranges` of a size
+    drawn from U[0, range_jitter] (drawn after the rotation and scale, so 0 changes nothing)."""
     factor = float(rng.uniform(scale[0], scale[1])) if scale[1] > scale[0] else float(scale[0])
-    if rotation:
-        theta = float(rng.uniform(0.0, 2.0 * math.pi))
+    theta = float(rng.uniform(0.0, 2.0 * math.pi)) if rotation else None
+    if range_jitter > 0:
+        points = jitter_ranges(points, float(rng.uniform(0.0, range_jitter)), rng)
+    out = points.copy()
+    if theta is not None:
         c, s = math.cos(theta), math.sin(theta)
         rot = np.array([[c, -s], [s, c]], np.float64) * factor
         out[:, :2] = (points[:, :2].astype(np.float64) @ rot.T).astype(np.float32)
         out[:, 2] = points[:, 2] * np.float32(factor)
     else:
         out[:, :3] = points[:, :3] * np.float32(factor)
+    return out
+
+
+def jitter_ranges(points: np.ndarray, size: float, rng: np.random.Generator) -> np.ndarray:
+    """``points`` (sensor frame) with each point moved along its ray so that ln(range + 1) changes
+    by ``size`` * N(0, 1): the relative range error a generator leaves (sampling.range_noise on the
+    encoded log-range is this on ln(range + 1), scaled by ln(max_range + 1) / 2)."""
+    xyz = points[:, :3].astype(np.float64)
+    dist = np.linalg.norm(xyz, axis=1)
+    moved = (dist + 1.0) * np.exp(size * rng.standard_normal(len(dist))) - 1.0
+    ratio = np.divide(np.maximum(moved, 0.0), dist, out=np.ones_like(dist), where=dist > 0)
+    out = points.copy()
+    out[:, :3] = (xyz * ratio[:, None]).astype(points.dtype)
     return out
 
 
@@ -196,7 +214,8 @@ class SegScanDataset(torch.utils.data.Dataset):
             points, labels = points[keep], labels[keep]
         if self.augmentation is not None and draw is not None:
             aug = self.augmentation
-            points = augment(points, draw_rng(self.seed, draw), bool(aug["rotation"]), tuple(aug["scale"]))
+            points = augment(points, draw_rng(self.seed, draw), bool(aug["rotation"]), tuple(aug["scale"]),
+                             float(aug.get("range_jitter", 0.0)))
         return {"points": points, "labels": labels, "path": rec["points"], "draw": draw, "index": i}
 
 
