@@ -70,3 +70,10 @@ def write(out: Path | None, rows: list[dict], figures: dict, columns: list[str] 
         doc["columns"] = list(columns)
     Path(out).write_text(json.dumps(doc, indent=2) + "\n")
     print(f"wrote {out}")
+
+
+def print_table(rows: list[dict], columns: list[str]) -> None:
+    """The rows on the terminal, one line each, cells joined by " | " under a header line."""
+    print(" | ".join(columns))
+    for row in rows:
+        print(" | ".join(str(row[c]) for c in columns))

@@ -69,9 +69,7 @@ def main() -> None:
     columns = ["class", *[f"{name}" for name in sets]]
     for name, (_, _, n) in sets.items():
         print(f"{name}: {n} scans")
-    print(" | ".join(columns))
-    for row in rows:
-        print(" | ".join(str(row[c]) for c in columns))
+    bench_record.print_table(rows, columns)
     bench_record.write(args.out, rows, {}, columns=columns)
 
 
