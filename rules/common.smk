@@ -557,6 +557,15 @@ BUDGET_VARIANTS = {f"budget{n}": {"generator": {"training": {"iterations": n}}}
                    for n in BUDGET["iterations"] if n != MAIN_GENERATOR_ITERATIONS}
 # Every variant of the generated row: the decomposition's attempts and the budgets.
 STUDY_VARIANTS = {**DECOMPOSITION["attempts"], **BUDGET_VARIANTS}
+# A run's file names its variant and then its scan count (..._study-gda-<domain>-<name><scans>_seed<s>),
+# so a name that is another's plus digits starting 1-9 (robust and robust10) would read as the other
+# with more scans.
+for _short in STUDY_VARIANTS:
+    for _long in STUDY_VARIANTS:
+        if _long != _short and _long.startswith(_short) and re.fullmatch(r"[1-9]\d*", _long[len(_short):]):
+            sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts {_short!r} and "
+                     f"{_long!r}: run files name the attempt, then its scan count, so {_long}<scans> also reads as "
+                     f"{_short} with more scans; rename one (e.g. {_short}_a).")
 
 
 def budget_row(iterations):
