@@ -626,3 +626,14 @@ def test_sample_quality_scores_generated_scans_against_held_out_real_scans(study
     assert main(["sample-quality", "--subset", str(root / "pool.json"), "--samples", str(tmp_path / "same" / "shard_0"),
                  "--scans", "4", "--metrics", "JSD", "--range-image", json.dumps(geometry), "--out", str(bad)]) != 0
     assert not bad.exists()
+
+
+def test_labeler_line_names_each_attempts_own_labeler():
+    from omnilidar.report.readme import _labeler_line
+
+    own = {"a": {"val_miou": 0.18, "val_iou": {"car": 0.4}}, "b": {"val_miou": 0.18, "val_iou": {"car": 0.4}},
+           "c": {"val_miou": 0.1, "val_iou": {"car": 0.3}}}
+    line = _labeler_line({"labeler": {"val_miou": 0.2, "val_iou": {"car": 0.5}},
+                          "labeler_check": {"compared": True, "warning": None}, "attempt_labelers": own})
+    assert line.startswith("Labeler (trained once on 100 % of the real train labels): val mIoU 20.00, car IoU 50.0")
+    assert "Own labeler of `a`, `b`: val mIoU 18.00, car IoU 40.0." in line and "Own labeler of `c`: val mIoU 10.00" in line

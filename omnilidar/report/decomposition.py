@@ -31,6 +31,7 @@ and, with the round-trip rows, the chain from the ceiling to GDA one link at a t
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -373,8 +374,8 @@ def decomposition_figure(path: str | Path, doc: dict) -> None:
         for ax, (backbone, study) in zip(axes[1 + chained], studies.items()):
             for i, curve in enumerate(study["strength_curves"].values()):
                 color, cross = f"C{i}", curve["crossing_strength"]
-                label = (f"generator {curve['iterations']} iterations" + curve_words(curve)
-                         + (f", pays up to {cross:.2g}" if cross is not None else ""))
+                label = textwrap.fill(f"generator {curve['iterations']} iterations" + curve_words(curve)
+                                      + (f", pays up to {cross:.2g}" if cross is not None else ""), 90)
                 ax.errorbar(curve["strength"], [100 * g for g in curve["gain_mean"]],
                             yerr=[100 * (e or 0.0) for e in curve["gain_std"]], marker="o", capsize=3, color=color,
                             ls="--" if curve.get("labels") == "carried" else "-", label=label)

@@ -35,8 +35,14 @@ def _labeler_line(doc: dict) -> str:
     check = doc.get("labeler_check") or {}
     verdict = ("stronger than every student it labels for" if check.get("compared") and not check.get("warning")
                else check.get("warning") or check.get("note", ""))
-    return (f"Labeler (trained once on 100 % of the real train labels): val mIoU {100 * lab['val_miou']:.2f}, "
+    line = (f"Labeler (trained once on 100 % of the real train labels): val mIoU {100 * lab['val_miou']:.2f}, "
             f"car IoU {100 * lab['val_iou'].get('car', 0.0):.1f}; {verdict}.")
+    by_labeler = {}  # attempts with a labeler of their own, grouped by that labeler's scores
+    for name, own in (doc.get("attempt_labelers") or {}).items():
+        by_labeler.setdefault((own["val_miou"], own["val_iou"].get("car", 0.0)), []).append(f"`{name}`")
+    for (miou, car), names in by_labeler.items():
+        line += f" Own labeler of {', '.join(names)}: val mIoU {100 * miou:.2f}, car IoU {100 * car:.1f}."
+    return line
 
 
 def semkitti_1pct(doc: dict) -> str:
