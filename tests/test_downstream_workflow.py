@@ -384,11 +384,11 @@ def test_labeler_attempts_label_with_a_labeler_of_their_own(workdir):
     result = next(line for line in lines if "omnilidar gda-decomposition" in line and "--attempt " in line)
     assert all(f"--attempt-labeler {name}=data/labeler/attempt-robust.val.json" in result
                for name in ("robust", "robust_too", "robust_edit50"))
-    # The shipped study: one generator and two labelers of their own for its thirteen attempts.
+    # The shipped study: one generator and two labelers of their own for its fifteen attempts.
     jobs = _jobs(workdir, "results/gda_decomposition.json", "--configfile", "config/config.yaml",
                  "config/robust_labeler.yaml")
     assert jobs["train_generator_attempt"] == 1 and jobs["train_labeler_attempt"] == 2
-    assert jobs["train_study"] == (7 + 13) * 3 and jobs["carry_labels"] == 2 * jobs["sample_domain"]
+    assert jobs["train_study"] == (7 + 15) * 3 and jobs["carry_labels"] == 3 * jobs["sample_domain"]
     for bad, why in (("{labels: carried, labeler: {batch_size: 1}, generator: {sampling: {strength: 0.5}}}",
                       "sets both labels: carried and a labeler of its own"),
                      ("{labeler: {augmentation: {range_jiter: 0.05}}}", "attempts.x.labeler"),
