@@ -614,7 +614,7 @@ CARRIED = f"{DATA}/carried_labels"
 # augmentation.range_jitter, robust to the range error of generated scans). Attempts whose labelers
 # would be the same share one, made by the first of them: data/labeler/attempt-<owner>.pt (and its
 # val scores beside it); the attempt's labels live under attempt-<name>/ like a generator attempt's.
-def attempt_labeler_section(name):
+def _attempt_labeler_section(name):
     """downstream.labeler with attempt ``name``'s labeler keys laid over it, validated."""
     from omnilidar.dicts import deep_merge
 
@@ -625,14 +625,14 @@ def attempt_labeler_section(name):
         sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{name}.labeler: {err}")
 
 
-LABELER_ATTEMPTS = [name for name, a in STUDY_VARIANTS.items() if "labeler" in a]
+LABELER_SECTIONS = {name: _attempt_labeler_section(name) for name, a in STUDY_VARIANTS.items() if "labeler" in a}
+LABELER_ATTEMPTS = list(LABELER_SECTIONS)
 LABELER_OWNER = {}
-for _name in LABELER_ATTEMPTS:
+for _name, _section in LABELER_SECTIONS.items():
     if STUDY_VARIANTS[_name].get("labels") == "carried":
         sys.exit(f"Invalid configuration: downstream.experiments.gda_decomposition.attempts.{_name} sets both "
                  "labels: carried and a labeler of its own; carried labels use no labeler.")
-    LABELER_OWNER[_name] = next(o for o in LABELER_ATTEMPTS
-                                if attempt_labeler_section(o) == attempt_labeler_section(_name))
+    LABELER_OWNER[_name] = next(o for o, other in LABELER_SECTIONS.items() if other == _section)
 
 
 def labeler_attempt(domain_path):
@@ -641,25 +641,23 @@ def labeler_attempt(domain_path):
     return name if domain_path.startswith("attempt-") and name in LABELER_OWNER else None
 
 
-def attempt_labeler(name):
-    """Checkpoint of attempt ``name``'s own labeler."""
-    return f"{DATA}/labeler/attempt-{LABELER_OWNER[name]}.pt"
+def attempt_labeler(name, suffix=".pt"):
+    """Checkpoint of attempt ``name``'s own labeler (``suffix=".val.json"``: its val scores)."""
+    return f"{DATA}/labeler/attempt-{LABELER_OWNER[name]}{suffix}"
 
 
 def pseudo_label_inputs(w):
     """What labels a pseudo-label shard: the attempt's own labeler where it has one, else the fixed
     labeler; the shard's samples (the main ones for an attempt that changes only the labeler)."""
     name = labeler_attempt(w.domain)
-    samples = f"{DATA}/samples/{w.domain}/shard_{w.shard}"
-    if name and name not in GENERATOR_ATTEMPTS:
-        samples = f"{DATA}/samples/{w.domain.split('/', 1)[1]}/shard_{w.shard}"
-    return {"labeler": attempt_labeler(name) if name else LABELER, "samples": samples}
+    samples = w.domain if name in GENERATOR_ATTEMPTS or not name else os.path.basename(w.domain)
+    return {"labeler": attempt_labeler(name) if name else LABELER, "samples": f"{DATA}/samples/{samples}/shard_{w.shard}"}
 
 
 def pseudo_label_settings(w):
     """The labeler section behind that shard's labeler, as one JSON value."""
     name = labeler_attempt(w.domain)
-    return json.dumps(attempt_labeler_section(name) if name else DOWNSTREAM["labeler"], sort_keys=True)
+    return json.dumps(LABELER_SECTIONS[name] if name else DOWNSTREAM["labeler"], sort_keys=True)
 
 
 # Of those, the ones that change more than sampling train their own generator; the others (e.g.

@@ -47,6 +47,13 @@ rule make_subset:
         "--out {output} > {log} 2>&1"
 
 
+# The fixed labeler's training and an attempt's own (the latter as one job: no segments).
+TRAIN_LABELER_SHELL = (
+    "omnilidar train-labeler --index {{input.index}} --settings {{params.settings:q}} --seed {{params.seed}} "
+    "--work-dir {{params.work_dir}} --threads {{threads}} --out {{output}}{segment} > {{log}} 2>&1"
+)
+
+
 rule train_labeler:
     """The fixed labeler: the configured checkpoint, or trained once on 100 % of the
     real SemanticKITTI train split (independent of the generator)."""
@@ -73,8 +80,7 @@ rule train_labeler:
     resources:
         **job_resources("train_labeler"),
     shell:
-        "omnilidar train-labeler --index {input.index} --settings {params.settings:q} --seed {params.seed} "
-        "--work-dir {params.work_dir} --threads {threads} --out {output} {params.segment} > {log} 2>&1"
+        TRAIN_LABELER_SHELL.format(segment=" {params.segment}")
 
 
 # A training longer than its partition's time limit: the segment jobs of its chain (resources.smk).
@@ -97,7 +103,7 @@ rule train_labeler_attempt:
     wildcard_constraints:
         attempt="|".join(sorted(set(LABELER_OWNER.values()))) or r"(?!)",
     params:
-        settings=lambda w: json.dumps(attempt_labeler_section(w.attempt), sort_keys=True),
+        settings=lambda w: json.dumps(LABELER_SECTIONS[w.attempt], sort_keys=True),
         seed=config["seed"],
         work_dir=lambda w: f"work/labeler/attempt-{w.attempt}",
         code=code("train-labeler"),
@@ -112,8 +118,7 @@ rule train_labeler_attempt:
     resources:
         **job_resources("train_labeler"),
     shell:
-        "omnilidar train-labeler --index {input.index} --settings {params.settings:q} --seed {params.seed} "
-        "--work-dir {params.work_dir} --threads {threads} --out {output} > {log} 2>&1"
+        TRAIN_LABELER_SHELL.format(segment="")
 
 
 rule evaluate_labeler:
@@ -829,7 +834,7 @@ rule gda_decomposition:
         attempts=[a.split("=", 1)[1] for a in attempt_evaluations(DECOMPOSITION["domain"], "val")],
         pool_labels=pool_labels_dir(DECOMPOSITION["percent"], DECOMPOSITION_SCANS),
         labeler=LABELER_VAL,
-        attempt_labelers=[attempt_labeler(a).replace(".pt", ".val.json") for a in LABELER_ATTEMPTS],
+        attempt_labelers=[attempt_labeler(a, ".val.json") for a in LABELER_ATTEMPTS],
     output:
         json="results/gda_decomposition.json",
         table="results/tables/gda_decomposition.html",
@@ -839,8 +844,7 @@ rule gda_decomposition:
         seed=config["seed"],
         data_source=data_source("semantickitti"),
         attempts=" ".join(f"--attempt {a}" for a in attempt_evaluations(DECOMPOSITION["domain"], "val")),
-        attempt_labelers=" ".join(f"--attempt-labeler {a}={attempt_labeler(a).replace('.pt', '.val.json')}"
-                                  for a in LABELER_ATTEMPTS),
+        attempt_labelers=" ".join(f"--attempt-labeler {a}={attempt_labeler(a, '.val.json')}" for a in LABELER_ATTEMPTS),
         generator_iterations=MAIN_GENERATOR_ITERATIONS,
         code=result_code("gda-decomposition"),
     log:

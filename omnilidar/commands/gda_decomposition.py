@@ -47,18 +47,18 @@ def run(args) -> int:
     settings = validate(dict(args.settings), "downstream.schema.yaml", source="--settings")
     requested = settings["experiments"]["gda_decomposition"]
     evals = [read_evaluation(p) for p in args.evaluations]
+    def named(item: str, flag: str) -> tuple[str, dict]:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise InputError(None, f"{flag} takes NAME=EVALUATION, got {item!r}")
+        return name, read_evaluation(path)
+
     attempts: dict[str, list[dict]] = {}
     for item in args.attempt:
-        name, sep, path = item.partition("=")
-        if not sep or not name or not path:
-            raise InputError(None, f"--attempt takes NAME=EVALUATION, got {item!r}")
-        attempts.setdefault(name, []).append(read_evaluation(path))
-    attempt_labelers = {}
-    for item in args.attempt_labeler:
-        name, sep, path = item.partition("=")
-        if not sep or not name or not path:
-            raise InputError(None, f"--attempt-labeler takes NAME=EVALUATION, got {item!r}")
-        attempt_labelers[name] = labeler_quality(read_evaluation(path))
+        name, evaluation = named(item, "--attempt")
+        attempts.setdefault(name, []).append(evaluation)
+    attempt_labelers = {name: labeler_quality(evaluation)
+                        for name, evaluation in (named(item, "--attempt-labeler") for item in args.attempt_labeler)}
     unknown = (set(attempts) | set(attempt_labelers)) - set(requested["attempts"])
     if unknown:
         raise InputError(None, f"attempt(s) {', '.join(sorted(unknown))} are not in experiments.gda_decomposition.attempts")
