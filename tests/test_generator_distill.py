@@ -12,12 +12,13 @@ import torch
 
 from omnilidar.errors import InputError
 from omnilidar.generator.checkpoint import load_generator
+from omnilidar.generator.diffusion import generate
 from omnilidar.generator.distill import (_grid_logsnr, compression_loss, consistency_loss, ddim_move, distillation_loss,
                                         two_step_target)
 from omnilidar.generator.distill_steps import student_sampler, student_steps
 from omnilidar.generator.samplers import SPACINGS, make_scheduler, time_grid
 from omnilidar.generator.sampling import sample_shard, student_sampling
-from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
+from omnilidar.generator.schedule import BF16_MIN_LOGSNR, CosineLogSNRSchedule, alpha_sigma, bf16_safe, predict_x0
 from omnilidar.generator.text import build_prompt_cache, load_prompt_cache
 from omnilidar.generator.training import train_generator
 from test_generator_fixtures import TINY_DOMAINS, make_domains, one_torch_thread, tiny_settings  # noqa: F401
@@ -405,3 +406,43 @@ def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teach
     student, _ = load_generator(tmp_path / "student.pt")
     teacher_den, _ = load_generator(tmp_path / "model.pt")
     assert torch.equal(student.prior_mean, teacher_den.prior_mean)
+
+
+def test_distillation_runs_in_float32_where_training_autocasts_bf16(teacher, tmp_path, monkeypatch):
+    """On a CPU that multiplies bf16 natively (faked) the generator trains under bf16 autocast; a
+    distillation does not: at the noisy end an epsilon network's bf16 rounding is an x0 error
+    larger than the data, and the distillation losses compare x0."""
+    from omnilidar.generator import training
+
+    root, settings, index, prompts, _ = teacher
+    settings = copy.deepcopy(settings)
+    settings["training"]["bf16"] = True
+    monkeypatch.setattr(training, "cpu_has_native_bf16", lambda: True)
+    seen = set()
+    original = torch.nn.Conv2d.forward
+    monkeypatch.setattr(torch.nn.Conv2d, "forward", lambda self, x: seen.add((out := original(self, x)).dtype) or out)
+    summary = train_generator(settings, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                              teacher=root / "model.pt")
+    assert summary["precision"] == "fp32" and seen == {torch.float32}
+
+
+def test_bf16_sampling_evaluates_the_noisy_end_in_float32(teacher):
+    """A 2-step sample under bf16 autocast (CPU autocast stands in for CUDA's) stays the float32
+    sample up to bf16 rounding: its first step, at logSNR -15, runs in float32. Evaluated in bf16
+    there, the x0 it implies would carry the rounding of epsilon times sigma / alpha ~ 1800."""
+    root, settings, _, prompts, _ = teacher
+    den, payload = load_generator(root / "model.pt")
+    entry = load_prompt_cache(prompts)["domains"][TINY_DOMAINS[0]]
+    shape = tuple(den.coords.shape[1:])
+    run = lambda bf16: generate(den, 0, entry["tokens"][0], entry["mask"][0], [1, 2], shape, "ddim", 2,  # noqa: E731
+                                autocast_bf16=bf16)
+    assert (run(True) - run(False)).abs().max() < 0.05
+    assert not bf16_safe(torch.tensor([-15.0, 0.0])) and bf16_safe(torch.tensor([BF16_MIN_LOGSNR, 15.0]))
+    z = torch.randn(1, 2, *shape, generator=torch.Generator().manual_seed(0))
+    tok, msk = entry["tokens"][0][None].float(), entry["mask"][0][None].bool()
+    noisy = torch.tensor([-15.0])
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        eps_bf16 = den(z, noisy, torch.tensor([0]), tok, msk).float()
+    with torch.no_grad():
+        eps = den(z, noisy, torch.tensor([0]), tok, msk)
+    assert (predict_x0(z, eps_bf16, noisy, clamp=False) - predict_x0(z, eps, noisy, clamp=False)).abs().max() > 0.5

@@ -17,7 +17,7 @@ import torch
 
 from omnilidar.generator.data import rng_for
 from omnilidar.generator.samplers import make_scheduler
-from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, min_snr_weight
+from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, bf16_safe, min_snr_weight
 
 
 def noised(image: torch.Tensor, t: torch.Tensor, eps: torch.Tensor, schedule: CosineLogSNRSchedule):
@@ -124,7 +124,7 @@ def generate(
     msk = mask.to(device).bool().expand(b, -1)
     for t in sched.timesteps:
         logsnr = sched.logsnr_at(t).to(device).expand(b)
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast_bf16):
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=autocast_bf16 and bf16_safe(logsnr)):
             eps = denoiser(x, logsnr, dom, tok, msk)
         eps = torch.nan_to_num(eps.float(), nan=0.0, posinf=0.0, neginf=0.0)
         x = sched.step(eps, t, x, generator=gens).prev_sample

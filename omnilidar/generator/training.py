@@ -376,13 +376,17 @@ def train_generator(
     # bf16 autocast on CUDA through the optimizer wrapper; on a CPU only where it multiplies bf16
     # natively: racing both precisions at once, bf16 took 0.8x the fp32 time in the median, though
     # the races disagreed (benchmarks/bench_train_precision.py, docs/benchmarks.md).
-    cpu_bf16 = bool(tr["bf16"]) and not cuda and cpu_has_native_bf16()
+    # Distillation always runs in float32: its losses compare x0 estimates at every time, including
+    # the noisy end where an epsilon network's bf16 rounding becomes an x0 error larger than the data
+    # (omnilidar.generator.schedule.BF16_MIN_LOGSNR; the students distilled in bf16 learnt from it).
+    bf16 = bool(tr["bf16"]) and dist is None
+    cpu_bf16 = bf16 and not cuda and cpu_has_native_bf16()
     model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen, cpu_bf16=cpu_bf16)
 
     lr = tr["lr"] if dist is None else dist["lr"]
     optimizer = dict(type="AdamW", lr=lr, betas=tuple(tr["betas"]), weight_decay=tr["weight_decay"])
     optim_wrapper = dict(type="OptimWrapper", optimizer=optimizer)
-    if cuda and tr["bf16"]:
+    if cuda and bf16:
         optim_wrapper = dict(type="AmpOptimWrapper", dtype="bfloat16", optimizer=optimizer)
     if tr["grad_clip"] > 0:
         optim_wrapper["clip_grad"] = dict(max_norm=tr["grad_clip"])
@@ -449,7 +453,7 @@ def train_generator(
         "parameters": count_parameters(denoiser),
         "work_dir": str(run_dir),
         "resumed_from": skip,
-        "precision": "bf16 autocast" if cuda and tr["bf16"] or cpu_bf16 else "fp32",
+        "precision": "bf16 autocast" if cuda and bf16 or cpu_bf16 else "fp32",
         **cost,
     }
     if until is not None:
