@@ -234,6 +234,34 @@ def test_a_narrower_student_learns_the_generator_first_then_the_rounds_and_sampl
     assert not all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_a_student_with_fewer_residual_blocks_starts_from_the_teachers_first_blocks(tmp_path):
+    """distillation.student_res_blocks: the student keeps the first block of every level (and every
+    other tensor) with the teacher's weights, learns the generator first, then runs the rounds."""
+    settings = distill_settings()
+    settings["model"]["num_res_blocks"] = 2
+    index = make_domains(tmp_path, settings)
+    prompts = tmp_path / "prompts.pt"
+    torch.save(build_prompt_cache(settings["prompts"], FakeEncoder()), prompts)
+    train_generator(settings, index, prompts, tmp_path / "teacher_work", tmp_path / "model.pt", seed=3)
+    pruned = copy.deepcopy(settings)
+    # A learning rate of 1e-12 leaves every weight where the student started.
+    pruned["distillation"].update(student_res_blocks=1, compression_iterations=2, lr=1e-12)
+    summary = train_generator(pruned, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                              teacher=tmp_path / "model.pt")
+    assert summary["iterations"] == 2 + 2 * 2
+    den, payload = load_generator(tmp_path / "student.pt")
+    assert payload["config"]["model"]["num_res_blocks"] == 1 and payload["student"]["steps"] == 1
+    student, teacher = _state(tmp_path / "student.pt"), _state(tmp_path / "model.pt")
+    assert set(student) < set(teacher)
+    assert {k for k in teacher if k not in student} == {k for k in teacher if ".blocks.1." in k}
+    for name, value in student.items():
+        torch.testing.assert_close(value, teacher[name], atol=1e-9, rtol=0)
+    sampling = student_sampling(dict(settings["sampling"], student=True), payload, tmp_path / "student.pt")
+    stats = sample_shard(den, payload, load_prompt_cache(prompts), "Beam32", 0, 2, sampling, 5,
+                         tmp_path / "Beam32", log=lambda *_: None)
+    assert stats["generated"] == 2
+
+
 @pytest.mark.parametrize("until", [2, 4])  # inside compression, and inside the first round
 def test_an_interrupted_narrow_distillation_resumes_to_the_same_student(teacher, narrow_student, tmp_path, until):
     _, _, index, prompts, _ = teacher

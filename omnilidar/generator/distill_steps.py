@@ -7,13 +7,26 @@ from __future__ import annotations
 
 def student_model(settings: dict) -> dict:
     """The student's model settings: the trained generator's, at ``distillation.student_channels``
-    when that is set."""
-    channels = settings["distillation"].get("student_channels")
-    return settings["model"] if channels is None else {**settings["model"], "base_channels": int(channels)}
+    and ``student_res_blocks`` where those are set."""
+    d = settings["distillation"]
+    model = dict(settings["model"])
+    if d.get("student_channels") is not None:
+        model["base_channels"] = int(d["student_channels"])
+    if d.get("student_res_blocks") is not None:
+        model["num_res_blocks"] = int(d["student_res_blocks"])
+    return model
+
+
+def starts_from_teacher(settings: dict) -> bool:
+    """Whether the student starts from its teacher's weights: at the teacher's width it does (a
+    student with fewer residual blocks per level keeps the first ones of every level); a narrower
+    one starts from scratch."""
+    return student_model(settings)["base_channels"] == settings["model"]["base_channels"]
 
 
 def compression_iterations(settings: dict) -> int:
-    """Steps in which a student of another width learns the trained generator's denoiser first."""
+    """Steps in which a student of another architecture (width or residual blocks) learns the trained
+    generator's denoiser first."""
     narrow = student_model(settings) != settings["model"]
     return int(settings["distillation"]["compression_iterations"]) if narrow else 0
 

@@ -45,8 +45,8 @@ from omnilidar.generator.data import RangeImageDataset, collate, make_batch_samp
 from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
 from omnilidar.generator.diffusion import epsilon_loss
 from omnilidar.generator.distill import compression_loss, consistency_loss, distillation_loss
-from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_steps, student_model,
-                                               student_sampler, student_steps)
+from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_steps,
+                                               starts_from_teacher, student_model, student_sampler, student_steps)
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
@@ -299,8 +299,10 @@ def train_generator(
     """Train (or resume) the generator and write the final EMA weights + config to ``out``.
 
     ``teacher``: a trained generator checkpoint to distill instead (``settings["distillation"]``,
-    :mod:`omnilidar.generator.distill`): the student starts from its weights (or, at another
-    ``student_channels``, from scratch with ``compression_iterations`` first), trains
+    :mod:`omnilidar.generator.distill`): the student starts from its weights (with fewer
+    ``student_res_blocks``, from those of the blocks it keeps; at another ``student_channels``, from
+    scratch), learns the trained generator's denoiser for ``compression_iterations`` first where its
+    architecture differs, trains
     ``rounds x iterations_per_round`` steps at the distillation learning rate, without EMA, and
     ``out`` records the DDIM steps it samples in (``payload["student"]``) and the student's own
     model settings.
@@ -368,8 +370,9 @@ def train_generator(
     frozen = None
     if dist is not None:
         frozen = teacher_weights(teacher, settings, names, cache)
-        if own["model"] == settings["model"]:
-            denoiser.load_state_dict(frozen.state_dict())
+        if starts_from_teacher(settings):  # every tensor of the student is one of the teacher's
+            teacher_state = frozen.state_dict()
+            denoiser.load_state_dict({name: teacher_state[name] for name in denoiser.state_dict()})
     if settings["diffusion"]["prior"] == "domain_mean":  # a student centres on its teacher's means
         denoiser.set_prior_mean(dataset.domain_means() if frozen is None else frozen.prior_mean)
     cuda = torch.cuda.is_available()
@@ -428,7 +431,8 @@ def train_generator(
         f"student of {teacher} ({dist['method']} distillation, {dist['teacher_steps']} -> {student_steps(dist)} "
         f"DDIM steps, {dist['rounds']} x {dist['iterations_per_round']} iterations"
         + (f" after {compression_iterations(settings)} of compression to base_channels "
-           f"{own['model']['base_channels']})" if compression_iterations(settings) else ")"))
+           f"{own['model']['base_channels']}, residual blocks per level {own['model']['num_res_blocks']})"
+           if compression_iterations(settings) else ")"))
     runner.logger.info(
         f"omnilidar {what}: {count_parameters(denoiser) / 1e6:.2f} M parameters, domains {names}, "
         f"{len(dataset)} scans, strategy {tr['strategy']}, {iterations} iterations"
