@@ -15,7 +15,7 @@ from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.diffusion import generate
 from omnilidar.generator.distill import (_grid_logsnr, compression_loss, consistency_loss, ddim_move, distillation_loss,
                                         two_step_target)
-from omnilidar.generator.distill_steps import student_sampler, student_steps
+from omnilidar.generator.distill_steps import round_at, round_iterations, student_sampler, student_steps
 from omnilidar.generator.samplers import SPACINGS, make_scheduler, time_grid
 from omnilidar.generator.sampling import sample_shard, student_sampling
 from omnilidar.generator.schedule import BF16_MIN_LOGSNR, CosineLogSNRSchedule, alpha_sigma, bf16_safe, predict_x0
@@ -231,6 +231,27 @@ def test_a_narrower_student_learns_the_generator_first_then_the_rounds_and_sampl
     assert train_generator(cold, index, prompts, tmp_path / "cold", tmp_path / "cold.pt", seed=3,
                            teacher=work / "model.pt")["iterations"] == 2 * 2
     a, b = _state(work / "student.pt"), _state(tmp_path / "cold.pt")
+    assert not all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_longer_final_round_moves_only_the_last_round_boundary():
+    d = {"rounds": 3, "iterations_per_round": 4, "final_round_iterations": 10}
+    assert round_iterations(d) == [4, 4, 10]
+    assert [round_at(d, step) for step in (0, 3, 4, 7, 8, 17)] == [0, 0, 1, 1, 2, 2]
+    assert round_iterations({**d, "final_round_iterations": None}) == [4, 4, 4]
+    assert round_at({**d, "final_round_iterations": None}, 8) == 2
+
+
+def test_a_distillation_with_a_longer_final_round_trains_it_and_samples(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    longer = copy.deepcopy(settings)
+    longer["distillation"]["final_round_iterations"] = 3
+    summary = train_generator(longer, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                              teacher=root / "model.pt")
+    assert summary["iterations"] == 2 + 3
+    _, payload = load_generator(tmp_path / "student.pt")
+    assert payload["student"]["steps"] == 1
+    a, b = _state(root / "student.pt"), _state(tmp_path / "student.pt")  # one more step than the default
     assert not all(torch.equal(a[k], b[k]) for k in a)
 
 

@@ -31,7 +31,7 @@ trained to agree with its own estimate one teacher step later, f(z_s, s), where 
 trained generator's DDIM step from z_t on the grid of ``teacher_steps`` (t = n / N, s = t - 1/N);
 at s = 0 the target is z_s itself (the boundary condition f(z, 0) = z). The target is the
 student's own estimate without gradient (the improved-consistency-training choice of no EMA
-target network). It trains ``rounds x iterations_per_round`` steps, the progressive budget, and
+target network). It trains the rounds' steps, the progressive budget, and
 the student samples in the same ``teacher_steps / 2^rounds`` DDIM steps.
 """
 

@@ -33,8 +33,29 @@ def compression_iterations(settings: dict) -> int:
 
 def distillation_iterations(settings: dict) -> int:
     """Optimizer steps of the whole distillation (compression, then the rounds)."""
-    d = settings["distillation"]
-    return compression_iterations(settings) + int(d["rounds"]) * int(d["iterations_per_round"])
+    return compression_iterations(settings) + sum(round_iterations(settings["distillation"]))
+
+
+def round_iterations(distillation: dict) -> list[int]:
+    """Optimizer steps of each round: ``iterations_per_round``, the last one
+    ``final_round_iterations`` where that is set (the last halving, to one or two steps, is the
+    hardest for the student to learn)."""
+    d = distillation
+    rounds = [int(d["iterations_per_round"])] * int(d["rounds"])
+    if d.get("final_round_iterations") is not None:
+        rounds[-1] = int(d["final_round_iterations"])
+    return rounds
+
+
+def round_at(distillation: dict, step: int) -> int:
+    """The round (0-based) that optimizer step ``step`` of the rounds (counted after compression)
+    belongs to; steps past the last round count as the last round."""
+    end = 0
+    for index, length in enumerate(round_iterations(distillation)):
+        end += length
+        if step < end:
+            return index
+    return int(distillation["rounds"]) - 1
 
 
 def student_steps(distillation: dict) -> int:

@@ -45,8 +45,9 @@ from omnilidar.generator.data import RangeImageDataset, collate, make_batch_samp
 from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
 from omnilidar.generator.diffusion import epsilon_loss
 from omnilidar.generator.distill import compression_loss, consistency_loss, distillation_loss
-from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_steps,
-                                               starts_from_teacher, student_model, student_sampler, student_steps)
+from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
+                                               round_iterations, round_steps, starts_from_teacher, student_model,
+                                               student_sampler, student_steps)
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
@@ -86,7 +87,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
     with noise drawn from a generator keyed by (seed, rank, iteration).
 
     With a frozen ``teacher`` (the trained generator) the loss is distillation's instead
-    (``settings["distillation"]``, :mod:`omnilidar.generator.distill`): a student of another width
+    (``settings["distillation"]``, :mod:`omnilidar.generator.distill`): a student of another architecture
     first learns the teacher's denoiser (compression), then the rounds; round 0's teacher is the
     trained generator, every later round's a frozen copy of the student as the previous round
     left it. That copy and its round are part of the model's state, so a checkpoint resumes with
@@ -148,7 +149,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                 loss = consistency_loss(self.denoiser, self.teacher, *args, int(dist["teacher_steps"]), gen,
                                         crop_width=self.crop_width, spacing=dist["spacing"])
                 return {"loss": loss}
-            round_index = (self.iteration - self.compression) // dist["iterations_per_round"]
+            round_index = round_at(dist, self.iteration - self.compression)
             if int(self.teacher_round) < round_index:  # a new round: the student becomes the teacher
                 self.round_teacher.load_state_dict(self.denoiser.state_dict())
                 self.teacher_round.fill_(round_index)
@@ -303,7 +304,7 @@ def train_generator(
     ``student_res_blocks``, from those of the blocks it keeps; at another ``student_channels``, from
     scratch), learns the trained generator's denoiser for ``compression_iterations`` first where its
     architecture differs, trains
-    ``rounds x iterations_per_round`` steps at the distillation learning rate, without EMA, and
+    its rounds' steps (:func:`~omnilidar.generator.distill_steps.round_iterations`) at the distillation learning rate, without EMA, and
     ``out`` records the DDIM steps it samples in (``payload["student"]``) and the student's own
     model settings.
 
@@ -429,7 +430,7 @@ def train_generator(
     )
     what = "generator" if dist is None else (
         f"student of {teacher} ({dist['method']} distillation, {dist['teacher_steps']} -> {student_steps(dist)} "
-        f"DDIM steps, {dist['rounds']} x {dist['iterations_per_round']} iterations"
+        f"DDIM steps, rounds of {round_iterations(dist)} iterations"
         + (f" after {compression_iterations(settings)} of compression to base_channels "
            f"{own['model']['base_channels']}, residual blocks per level {own['model']['num_res_blocks']})"
            if compression_iterations(settings) else ")"))
