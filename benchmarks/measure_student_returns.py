@@ -1,0 +1,96 @@
+"""How many pixels of a scan are returns, per domain: the generator's training scans, the trained
+generator with its own sampler, and distilled students with theirs.
+
+    python benchmarks/measure_student_returns.py --domains data/domains/index.json \
+        --prompts data/generator/prompts.pt --generator data/generator/full/model.pt \
+        --student data/generator/full/student.pt --scans 8
+
+A pixel is a return when it decodes to a valid range (omnilidar.data.range_image.decode, with the
+domain's own sensor geometry), as the sampling stage back-projects it. A missing return is encoded
+as -1 and a valid one lies above the encoded minimum range, so a network whose x0 averages over
+whether a pixel returns lands in between and, above that minimum, draws a point where the scans it
+learnt from have none. The returns fraction of a student against its teacher's shows whether its
+few steps blur the sensor's drop-outs. Prints, per domain, the mean fraction over the scans and its
+spread; every scan has its own sampling seed, the same for every checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import bench_record
+from omnilidar.data.range_image import decode
+from omnilidar.generator.checkpoint import load_generator
+from omnilidar.generator.data import load_range_image, read_domains_index
+from omnilidar.generator.diffusion import generate
+from omnilidar.generator.sampling import domain_points_spec
+from omnilidar.generator.schedule import CosineLogSNRSchedule
+from omnilidar.generator.text import load_prompt_cache
+
+
+def returns_fraction(image: np.ndarray, spec) -> float:
+    """Fraction of the (2, H, W) image's pixels that decode to a valid range."""
+    return float(decode(image, spec)[2].mean())
+
+
+def sampled_fractions(path: Path, cache: dict, domain: str, seeds: list[int], batch: int) -> tuple[str, list[float]]:
+    """(sampler label, the returns fraction of each seed's scan) of one checkpoint with its own sampler."""
+    den, payload = load_generator(path)
+    cfg = payload["config"]
+    student = payload.get("student")
+    sampler, steps = (student["sampler"], int(student["steps"])) if student else (
+        cfg["sampling"]["sampler"], int(cfg["sampling"]["steps"]))
+    spec = domain_points_spec(cfg, payload, domain)
+    schedule = CosineLogSNRSchedule(cfg["diffusion"]["logsnr_min"], cfg["diffusion"]["logsnr_max"])
+    entry = cache["domains"][domain]
+    fractions = []
+    with torch.no_grad():
+        for i in range(0, len(seeds), batch):
+            images = generate(den, payload["domains"].index(domain), entry["tokens"][0], entry["mask"][0],
+                              seeds[i:i + batch], spec.shape, sampler=sampler, steps=steps, schedule=schedule)
+            fractions += [returns_fraction(image, spec) for image in images.numpy()]
+    return f"{'student' if student else 'generator'} {sampler} x {steps}", fractions
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--domains", type=Path, required=True, help="the domains index the generator trained on")
+    ap.add_argument("--prompts", type=Path, required=True)
+    ap.add_argument("--generator", type=Path, required=True, help="the trained generator (the teacher)")
+    ap.add_argument("--student", type=Path, action="append", default=[], help="a distilled student (repeatable)")
+    ap.add_argument("--only", nargs="*", default=None, help="domains to measure (default: the generator's)")
+    ap.add_argument("--scans", type=int, default=8, help="sampled scans per domain and checkpoint")
+    ap.add_argument("--seed", type=int, default=1000, help="the first scan's sampling seed")
+    ap.add_argument("--batch", type=int, default=8)
+    bench_record.out_arg(ap)
+    args = ap.parse_args()
+
+    _, payload = load_generator(args.generator)
+    cfg = payload["config"]
+    shape = (cfg["range_image"]["height"], cfg["range_image"]["width"])
+    index = read_domains_index(args.domains)
+    cache = load_prompt_cache(args.prompts)
+    seeds = list(range(args.seed, args.seed + args.scans))
+    rows, figures = [], {}
+    for domain in args.only or payload["domains"]:
+        spec = domain_points_spec(cfg, payload, domain)
+        measured = {"training scans": [returns_fraction(load_range_image(f, shape), spec)
+                                       for f in index[domain]["files"]]}
+        for path in [args.generator, *args.student]:
+            label, fractions = sampled_fractions(path, cache, domain, seeds, args.batch)
+            measured[f"{label} ({path})" if label in measured else label] = fractions
+        figures[domain] = measured
+        for label, fractions in measured.items():
+            mean, spread = statistics.fmean(fractions), statistics.stdev(fractions)
+            print(f"{domain:>10} {label:>40}: returns {mean:.3f} +- {spread:.3f} of the pixels ({len(fractions)} scans)")
+            rows.append({"what": f"{domain}: {label}", "returns": f"{mean:.3f} +- {spread:.3f} ({len(fractions)} scans)"})
+    bench_record.write(args.out, rows, figures, columns=["what", "returns"])
+
+
+if __name__ == "__main__":
+    main()
