@@ -281,6 +281,13 @@ def test_a_student_with_fewer_residual_blocks_starts_from_the_teachers_first_blo
     stats = sample_shard(den, payload, load_prompt_cache(prompts), "Beam32", 0, 2, sampling, 5,
                          tmp_path / "Beam32", log=lambda *_: None)
     assert stats["generated"] == 2
+    # More blocks than the teacher has cannot start from it: one clear error before any training.
+    wider = copy.deepcopy(settings)
+    wider["distillation"]["student_res_blocks"] = 3
+    with pytest.raises(InputError, match="student_res_blocks 3 exceeds .*num_res_blocks 2"):
+        train_generator(wider, index, prompts, tmp_path / "wider", tmp_path / "wider.pt", seed=3,
+                        teacher=tmp_path / "model.pt")
+    assert not (tmp_path / "wider.pt").exists()
 
 
 @pytest.mark.parametrize("until", [2, 4])  # inside compression, and inside the first round

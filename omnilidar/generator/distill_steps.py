@@ -4,6 +4,9 @@
 
 from __future__ import annotations
 
+from bisect import bisect_right
+from itertools import accumulate
+
 
 def student_model(settings: dict) -> dict:
     """The student's model settings: the trained generator's, at ``distillation.student_channels``
@@ -50,12 +53,8 @@ def round_iterations(distillation: dict) -> list[int]:
 def round_at(distillation: dict, step: int) -> int:
     """The round (0-based) that optimizer step ``step`` of the rounds (counted after compression)
     belongs to; steps past the last round count as the last round."""
-    end = 0
-    for index, length in enumerate(round_iterations(distillation)):
-        end += length
-        if step < end:
-            return index
-    return int(distillation["rounds"]) - 1
+    ends = list(accumulate(round_iterations(distillation)))
+    return min(bisect_right(ends, step), len(ends) - 1)
 
 
 def student_steps(distillation: dict) -> int:

@@ -303,8 +303,8 @@ def train_generator(
     :mod:`omnilidar.generator.distill`): the student starts from its weights (with fewer
     ``student_res_blocks``, from those of the blocks it keeps; at another ``student_channels``, from
     scratch), learns the trained generator's denoiser for ``compression_iterations`` first where its
-    architecture differs, trains
-    its rounds' steps (:func:`~omnilidar.generator.distill_steps.round_iterations`) at the distillation learning rate, without EMA, and
+    architecture differs, trains its rounds' steps (:func:`~omnilidar.generator.distill_steps.round_iterations`)
+    at the distillation learning rate, without EMA, and
     ``out`` records the DDIM steps it samples in (``payload["student"]``) and the student's own
     model settings.
 
@@ -332,6 +332,10 @@ def train_generator(
     if dist is not None and (dist["teacher_steps"] >> dist["rounds"]) << dist["rounds"] != dist["teacher_steps"]:
         raise InputError(None, f"generator.distillation: teacher_steps {dist['teacher_steps']} cannot be halved "
                                f"{dist['rounds']} times")
+    if dist is not None and student_model(settings)["num_res_blocks"] > settings["model"]["num_res_blocks"]:
+        raise InputError(None, f"generator.distillation.student_res_blocks {dist['student_res_blocks']} exceeds the "
+                               f"trained generator's model.num_res_blocks {settings['model']['num_res_blocks']}: "
+                               "a student keeps some of its teacher's blocks")
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
