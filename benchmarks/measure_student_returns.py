@@ -28,7 +28,7 @@ from omnilidar.data.range_image import decode
 from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.data import load_range_image, read_domains_index
 from omnilidar.generator.diffusion import generate
-from omnilidar.generator.sampling import domain_points_spec
+from omnilidar.generator.sampling import domain_points_spec, student_sampling
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache
 
@@ -38,13 +38,12 @@ def returns_fraction(image: np.ndarray, spec) -> float:
     return float(decode(image, spec)[2].mean())
 
 
-def sampled_fractions(path: Path, cache: dict, domain: str, seeds: list[int], batch: int) -> tuple[str, list[float]]:
-    """(sampler label, the returns fraction of each seed's scan) of one checkpoint with its own sampler."""
-    den, payload = load_generator(path)
+def sampled_fractions(den, payload: dict, path: Path, cache: dict, domain: str, seeds: list[int],
+                      batch: int) -> tuple[str, list[float]]:
+    """(sampler label, the returns fraction of each seed's scan) of one loaded checkpoint with its own
+    sampler (a student's DDIM steps, the generator's configured sampler)."""
     cfg = payload["config"]
-    student = payload.get("student")
-    sampler, steps = (student["sampler"], int(student["steps"])) if student else (
-        cfg["sampling"]["sampler"], int(cfg["sampling"]["steps"]))
+    sampling = student_sampling(cfg["sampling"], payload, path)
     spec = domain_points_spec(cfg, payload, domain)
     schedule = CosineLogSNRSchedule(cfg["diffusion"]["logsnr_min"], cfg["diffusion"]["logsnr_max"])
     entry = cache["domains"][domain]
@@ -52,9 +51,11 @@ def sampled_fractions(path: Path, cache: dict, domain: str, seeds: list[int], ba
     with torch.no_grad():
         for i in range(0, len(seeds), batch):
             images = generate(den, payload["domains"].index(domain), entry["tokens"][0], entry["mask"][0],
-                              seeds[i:i + batch], spec.shape, sampler=sampler, steps=steps, schedule=schedule)
+                              seeds[i:i + batch], spec.shape, sampler=sampling["sampler"], steps=int(sampling["steps"]),
+                              schedule=schedule)
             fractions += [returns_fraction(image, spec) for image in images.numpy()]
-    return f"{'student' if student else 'generator'} {sampler} x {steps}", fractions
+    kind = "student" if payload.get("student") else "generator"
+    return f"{kind} {sampling['sampler']} x {sampling['steps']}", fractions
 
 
 def main() -> None:
@@ -70,7 +71,8 @@ def main() -> None:
     bench_record.out_arg(ap)
     args = ap.parse_args()
 
-    _, payload = load_generator(args.generator)
+    checkpoints = [(path, *load_generator(path)) for path in [args.generator, *args.student]]
+    payload = checkpoints[0][2]
     cfg = payload["config"]
     shape = (cfg["range_image"]["height"], cfg["range_image"]["width"])
     index = read_domains_index(args.domains)
@@ -81,8 +83,8 @@ def main() -> None:
         spec = domain_points_spec(cfg, payload, domain)
         measured = {"training scans": [returns_fraction(load_range_image(f, shape), spec)
                                        for f in index[domain]["files"]]}
-        for path in [args.generator, *args.student]:
-            label, fractions = sampled_fractions(path, cache, domain, seeds, args.batch)
+        for path, den, own in checkpoints:
+            label, fractions = sampled_fractions(den, own, path, cache, domain, seeds, args.batch)
             measured[f"{label} ({path})" if label in measured else label] = fractions
         figures[domain] = measured
         for label, fractions in measured.items():
