@@ -39,4 +39,9 @@ def load_generator(path: str | Path, device: str | torch.device = "cpu", backend
         denoiser.load_state_dict(payload["state_dict"], strict=True)
     except RuntimeError as err:
         raise InputError(path, f"weights do not match the stored config: {err}") from None
+    thresholds = payload.get("return_thresholds")  # a calibrated student's (omnilidar.generator.return_decision)
+    if thresholds is not None:
+        if tuple(thresholds.shape) != (len(payload["domains"]), int(settings["range_image"]["height"])):
+            raise InputError(path, f"return_thresholds are {tuple(thresholds.shape)}, not (domains, image rows)")
+        denoiser.return_thresholds = thresholds.float()
     return denoiser.to(device).eval(), payload

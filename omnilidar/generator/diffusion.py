@@ -16,6 +16,7 @@ import zlib
 import torch
 
 from omnilidar.generator.data import rng_for
+from omnilidar.generator.return_decision import apply_return_thresholds
 from omnilidar.generator.samplers import make_scheduler
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, bf16_safe, min_snr_weight
 
@@ -100,6 +101,10 @@ def generate(
     real scans noised to t = ``strength`` with each scan's seeded noise, and the sampler runs
     ceil(steps * strength) steps from there to 0: the same step density as a full run. Near 0 a
     scan stays its source; at 1 it is a fresh sample (``init`` is then not used).
+
+    A distilled student with calibrated ``return_thresholds`` (attached by
+    :func:`~omnilidar.generator.checkpoint.load_generator`) decides its drop-outs with them
+    (:mod:`omnilidar.generator.return_decision`).
     """
     if not 0.0 < strength <= 1.0:
         raise ValueError(f"strength must be in (0, 1], got {strength}")
@@ -128,7 +133,11 @@ def generate(
             eps = denoiser(x, logsnr, dom, tok, msk)
         eps = torch.nan_to_num(eps.float(), nan=0.0, posinf=0.0, neginf=0.0)
         x = sched.step(eps, t, x, generator=gens).prev_sample
-    return x.clamp(-1.0, 1.0).float().cpu()
+    x = x.clamp(-1.0, 1.0).float()
+    thresholds = getattr(denoiser, "return_thresholds", None)  # a calibrated student's return decision
+    if thresholds is not None:
+        x = apply_return_thresholds(x, thresholds[int(domain_index)])
+    return x.cpu()
 
 
 def scan_seed(seed: int, domain: str, index: int) -> int:

@@ -287,6 +287,22 @@ def teacher_weights(path: str | Path, settings: dict, names: list[str], cache: d
     return frozen
 
 
+def student_return_thresholds(student: torch.nn.Module, teacher: torch.nn.Module, settings: dict, payload: dict,
+                              cache: dict, seed: int) -> torch.Tensor:
+    """The finished student's per-row return thresholds against the trained generator
+    (``distillation.return_calibration`` scans per domain; :mod:`omnilidar.generator.return_decision`)."""
+    from omnilidar.generator.return_decision import calibrate_returns
+    from omnilidar.generator.sampling import domain_points_spec
+
+    d = settings["diffusion"]
+    names = payload["domains"]
+    specs = {n: domain_points_spec(settings, payload, n) for n in names}
+    log = logging.getLogger("mmengine").info
+    return calibrate_returns(student.eval(), teacher.eval(), names, cache["domains"], specs, settings["distillation"],
+                             CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"]),
+                             int(settings["distillation"]["return_calibration"]), seed, log=log)
+
+
 def train_generator(
     settings: dict,
     domains_index: str | Path,
@@ -491,7 +507,9 @@ def train_generator(
         if dist is not None:
             payload["student"] = {"sampler": student_sampler(dist), "steps": student_steps(dist),
                                   "teacher": str(teacher), "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"]),
-                                  "method": dist["method"]}
+                                  "method": dist["method"], "return_calibration": int(dist["return_calibration"])}
+            if int(dist["return_calibration"]):
+                payload["return_thresholds"] = student_return_thresholds(final, frozen, own, payload, cache, seed)
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
     logging.getLogger("mmengine").info(f"wrote {out}")

@@ -1,0 +1,103 @@
+"""A distilled student's calibrated return decision: the per-row thresholds, how sampling applies
+them, their seeds, and a real tiny distillation that calibrates its student."""
+
+from __future__ import annotations
+
+import copy
+import zlib
+
+import numpy as np
+import pytest
+import torch
+
+from omnilidar.data.range_image import decode
+from omnilidar.errors import InputError
+from omnilidar.generator.checkpoint import load_generator
+from omnilidar.generator.data import rng_for
+from omnilidar.generator.diffusion import generate, scan_seed
+from omnilidar.generator.return_decision import apply_return_thresholds, calibration_seeds, row_thresholds
+from omnilidar.generator.sampling import domain_points_spec
+from omnilidar.generator.text import load_prompt_cache
+from omnilidar.generator.training import train_generator
+from test_generator_distill import teacher  # noqa: F401  (the module's tiny teacher and student)
+from test_generator_fixtures import TINY_DOMAINS, one_torch_thread  # noqa: F401
+
+
+def test_a_row_where_the_student_returns_more_loses_its_lowest_values_until_it_returns_as_often():
+    rng = np.random.default_rng(0)
+    values = rng.uniform(-0.5, 1.0, (4, 3, 50)).astype(np.float32)  # every pixel a return
+    student_returns = np.ones(values.shape, bool)
+    teacher_returns = np.zeros(values.shape, bool)
+    teacher_returns[:, 0, :30] = True  # row 0: the teacher returns 60 %
+    teacher_returns[:, 1] = True       # row 1: as often as the student
+    # row 2: the teacher never returns
+    thr = row_thresholds(values, student_returns, teacher_returns)
+    kept = values > thr[None, :, None]
+    assert kept[:, 0].sum() == 120 and kept[:, 1].all() and not kept[:, 2].any()
+    assert thr[1] == -1.0
+    # What row 0 keeps are its highest values.
+    assert values[:, 0][kept[:, 0]].min() > values[:, 0][~kept[:, 0]].max()
+    # A row where the student returns less than its teacher is left alone (nothing is added).
+    fewer = student_returns.copy()
+    fewer[:, 0, :] = False
+    assert row_thresholds(values, fewer, teacher_returns)[0] == -1.0
+
+
+def test_a_thresholded_pixel_is_empty_in_both_channels_and_others_keep_their_values():
+    images = torch.tensor([[[[0.2, -0.3]], [[0.5, 0.6]]]])  # (1, 2, 1, 2)
+    out = apply_return_thresholds(images, torch.tensor([-0.3]))
+    assert out[0, :, 0, 1].tolist() == [-1.0, -1.0]
+    assert torch.equal(out[0, :, 0, 0], images[0, :, 0, 0])
+
+
+def test_calibration_noise_is_never_a_sampled_scan_s_noise():
+    cal = set(calibration_seeds(0, "Drone", 64))
+    assert len(cal) == 64 and cal == set(calibration_seeds(0, "Drone", 64))
+    assert not cal & {scan_seed(0, "Drone", g) for g in range(10_000)}
+    assert cal != set(calibration_seeds(1, "Drone", 64)) and cal != set(calibration_seeds(0, "Snow", 64))
+    assert calibration_seeds(0, "Drone", 1)[0] == int(rng_for(0, zlib.crc32(b"Drone"), 0xCA1B, 0).integers(2**63 - 1))
+
+
+def test_a_tiny_distillation_calibrates_its_student_to_its_teacher_s_returns(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    calibrated = copy.deepcopy(settings)
+    calibrated["distillation"]["return_calibration"] = 4
+    train_generator(calibrated, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                    teacher=root / "model.pt")
+    student, payload = load_generator(tmp_path / "student.pt")
+    thresholds = payload["return_thresholds"]
+    assert thresholds.shape == (len(TINY_DOMAINS), settings["range_image"]["height"])
+    assert payload["student"]["return_calibration"] == 4
+    # The same weights as the uncalibrated student of the same run: calibration only adds the decision.
+    plain = torch.load(root / "student.pt", weights_only=True)["state_dict"]
+    assert all(torch.equal(plain[k], payload["state_dict"][k]) for k in plain)
+    gen, _ = load_generator(root / "model.pt")
+    uncalibrated, _ = load_generator(root / "student.pt")
+    cache = load_prompt_cache(prompts)
+    thresholded = 0
+    for d, name in enumerate(TINY_DOMAINS):
+        spec = domain_points_spec(payload["config"], payload, name)
+        seeds = calibration_seeds(3, name, 4)
+        entry = cache["domains"][name]
+
+        def returns(net, steps):
+            images = generate(net, d, entry["tokens"][0], entry["mask"][0], seeds, spec.shape, "ddim", steps)
+            return np.stack([decode(img, spec)[2] for img in images.numpy()])
+
+        teacher_rows = returns(gen, 4).mean(axis=(0, 2))
+        plain_rows, calibrated_rows = returns(uncalibrated, 1).mean(axis=(0, 2)), returns(student, 1).mean(axis=(0, 2))
+        # On its calibration noise, every row the student over-filled returns as often as the teacher.
+        over = plain_rows > teacher_rows
+        assert np.allclose(calibrated_rows[over], teacher_rows[over], atol=1 / (4 * spec.shape[1]))
+        assert np.array_equal(calibrated_rows[~over], plain_rows[~over])
+        thresholded += int(over.sum())
+    assert thresholded  # the tiny student over-fills some rows, so the check above checks something
+
+
+def test_a_checkpoint_whose_thresholds_do_not_fit_its_image_is_one_clear_error(teacher, tmp_path):
+    root = teacher[0]
+    payload = torch.load(root / "student.pt", weights_only=True)
+    payload["return_thresholds"] = torch.zeros(1, 3)
+    torch.save(payload, tmp_path / "bad.pt")
+    with pytest.raises(InputError, match="return_thresholds"):
+        load_generator(tmp_path / "bad.pt")
