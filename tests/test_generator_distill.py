@@ -504,3 +504,36 @@ def test_bf16_sampling_evaluates_the_noisy_end_in_float32(teacher):
     with torch.no_grad():
         eps = den(z, noisy, torch.tensor([0]), tok, msk)
     assert (predict_x0(z, eps_bf16, noisy, clamp=False) - predict_x0(z, eps, noisy, clamp=False)).abs().max() > 0.5
+
+
+def test_a_pseudo_huber_error_is_minimised_by_the_median_where_a_squared_one_averages():
+    from omnilidar.generator.distill import pixel_error
+
+    d = torch.tensor([0.001, 0.5])
+    assert torch.allclose(pixel_error(d), d.square())
+    huber = pixel_error(d, 0.01)
+    assert abs(huber[0] / (0.001**2 / 0.02) - 1) < 1e-2 and abs(huber[1] - (0.5 - 0.01)) < 1e-3  # quadratic, then linear
+    # Three drop-outs (-1) and two returns (0.4) that a student cannot tell apart.
+    targets = torch.tensor([-1.0, -1.0, -1.0, 0.4, 0.4])
+    grid = torch.linspace(-1, 1, 2001)
+    best = {c: grid[torch.stack([pixel_error(x - targets, c).mean() for x in grid]).argmin()].item()
+            for c in (None, 0.01)}
+    assert abs(best[None] - targets.mean().item()) < 2e-3 and abs(best[0.01] + 1.0) < 2e-2
+
+
+def test_a_distillation_with_a_pseudo_huber_error_trains_another_student(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    huber = copy.deepcopy(settings)
+    huber["distillation"]["huber_c"] = 0.01
+    train_generator(huber, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3, teacher=root / "model.pt")
+    a, b = _state(root / "student.pt"), _state(tmp_path / "student.pt")
+    assert not all(torch.equal(a[k], b[k]) for k in a)
+    den, payload = load_generator(tmp_path / "student.pt")
+    assert payload["config"]["distillation"]["huber_c"] == 0.01
+    assert torch.isfinite(generate(den, 0, *_first_prompt(prompts), [1], tuple(settings["range_image"][k] for k in
+                                                                               ("height", "width")), "ddim", 1)).all()
+
+
+def _first_prompt(prompts):
+    entry = next(iter(load_prompt_cache(prompts)["domains"].values()))
+    return entry["tokens"][0], entry["mask"][0]

@@ -24,7 +24,11 @@ z_t must use to land on z_t''::
 
     x~ = (z_t'' - (sigma_t'' / sigma_t) z_t) / (alpha_t'' - (sigma_t'' / sigma_t) alpha_t)
 
-The loss is the x0 error weighted by max(SNR(t), 1) ("truncated SNR" weighting).
+The loss is the x0 error weighted by max(SNR(t), 1) ("truncated SNR" weighting), per pixel squared
+(the default) or pseudo-Huber (``distillation.huber_c``). A squared error is minimised by the mean
+of what the student cannot tell apart, so a one-step student averages it (a drop-out and a return,
+a near and a far surface); a pseudo-Huber error above ``huber_c`` is minimised by the median,
+which picks one of them.
 
 Consistency distillation, for the measured comparison: the student's x0 estimate f(z_t, t) is
 trained to agree with its own estimate one teacher step later, f(z_s, s), where z_s is the frozen
@@ -95,18 +99,27 @@ def _noised(image: torch.Tensor, eps: torch.Tensor, logsnr: torch.Tensor) -> tor
     return (_per_scan(a_t) * image.double() + _per_scan(s_t) * eps.double()).float()
 
 
+def pixel_error(diff: torch.Tensor, huber_c: float | None = None) -> torch.Tensor:
+    """Per-pixel error of an x0 difference: squared (``huber_c`` None), or pseudo-Huber
+    sqrt(d^2 + c^2) - c, which is quadratic below c and grows like |d| above it."""
+    if huber_c is None:
+        return diff.square()
+    return torch.sqrt(diff.square() + huber_c**2) - huber_c
+
+
 def _weighted_x0_error(student_out: torch.Tensor, z_t: torch.Tensor, logsnr: torch.Tensor,
-                       target: torch.Tensor) -> torch.Tensor:
-    """The student's x0 (unclamped) against ``target``, weighted by max(SNR, 1) ("truncated SNR")."""
+                       target: torch.Tensor, huber_c: float | None = None) -> torch.Tensor:
+    """The student's x0 (unclamped) against ``target``, weighted by max(SNR, 1) ("truncated SNR"),
+    per pixel squared or pseudo-Huber (:func:`pixel_error`)."""
     x0 = predict_x0(z_t, student_out.float(), logsnr, clamp=False)
     weight = torch.clamp(torch.exp(logsnr.double()), min=1.0).float()
-    return (weight * (x0 - target).square().mean(dim=(1, 2, 3))).mean()
+    return (weight * pixel_error(x0 - target, huber_c).mean(dim=(1, 2, 3))).mean()
 
 
 def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                       tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
                       generator: torch.Generator, crop_width: int | None = None,
-                      spacing: str = "uniform") -> torch.Tensor:
+                      spacing: str = "uniform", huber_c: float | None = None) -> torch.Tensor:
     """Truncated-SNR weighted x0 error of the ``steps``-step student against two teacher steps.
 
     Noise, times and azimuth windows come from ``generator`` in the order of
@@ -121,13 +134,13 @@ def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image:
         z_end = ddim_move(predict_x0(z_mid, teacher(z_mid, l_mid, domain, tokens, mask, **extra), l_mid),
                           z_mid, l_mid, l_end)
         target = two_step_target(z_t, z_end, l_t, l_end)
-    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target)
+    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target, huber_c)
 
 
 def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, grid: int,
                      generator: torch.Generator, crop_width: int | None = None,
-                     spacing: str = "uniform") -> torch.Tensor:
+                     spacing: str = "uniform", huber_c: float | None = None) -> torch.Tensor:
     """Truncated-SNR weighted error between the student's x0 and the teacher's at the times of a
     ``grid``-step DDIM sampler: one step of the student lands where one of the teacher lands, so a
     narrower student starts its rounds as a copy of the trained generator's sampler. Draws as
@@ -138,13 +151,13 @@ def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: 
     l_t = l_t.float()
     with torch.no_grad():
         target = predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra).float(), l_t)
-    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target)
+    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target, huber_c)
 
 
 def consistency_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, grid: int,
                      generator: torch.Generator, crop_width: int | None = None,
-                     spacing: str = "uniform") -> torch.Tensor:
+                     spacing: str = "uniform", huber_c: float | None = None) -> torch.Tensor:
     """Truncated-SNR weighted error between the student's x0 at t and its own x0 (no gradient) one
     teacher DDIM step later on a ``grid``-step grid; at s = 0 the target is the teacher's landing.
 
@@ -158,4 +171,4 @@ def consistency_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: 
         z_s = ddim_move(predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra), l_t), z_t, l_t, l_s)
         target = predict_x0(z_s, student(z_s, l_s, domain, tokens, mask, **extra).float(), l_s)
         target = torch.where(_per_scan(index == 1), z_s.clamp(-1.0, 1.0), target)  # f(z, 0) = z
-    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target)
+    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target, huber_c)

@@ -143,11 +143,11 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             args = (image, domain, tokens, mask, self.schedule)
             if self.iteration < self.compression:  # a narrower student learns the trained generator first
                 loss = compression_loss(self.denoiser, self.teacher, *args, int(dist["teacher_steps"]), gen,
-                                        crop_width=self.crop_width, spacing=dist["spacing"])
+                                        crop_width=self.crop_width, spacing=dist["spacing"], huber_c=dist["huber_c"])
                 return {"loss": loss}
             if dist["method"] == "consistency":  # the trained generator teaches throughout
                 loss = consistency_loss(self.denoiser, self.teacher, *args, int(dist["teacher_steps"]), gen,
-                                        crop_width=self.crop_width, spacing=dist["spacing"])
+                                        crop_width=self.crop_width, spacing=dist["spacing"], huber_c=dist["huber_c"])
                 return {"loss": loss}
             round_index = round_at(dist, self.iteration - self.compression)
             if int(self.teacher_round) < round_index:  # a new round: the student becomes the teacher
@@ -155,7 +155,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                 self.teacher_round.fill_(round_index)
             loss = distillation_loss(self.denoiser, self.round_teacher if round_index else self.teacher, *args,
                                      round_steps(dist, round_index), gen, crop_width=self.crop_width,
-                                     spacing=dist["spacing"])
+                                     spacing=dist["spacing"], huber_c=dist["huber_c"])
             return {"loss": loss}
 
     return DiffusionModel()
