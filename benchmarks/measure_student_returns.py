@@ -10,7 +10,9 @@ domain's own sensor geometry), as the sampling stage back-projects it. A missing
 as -1 and a valid one lies above the encoded minimum range, so a network whose x0 averages over
 whether a pixel returns lands in between and, above that minimum, draws a point where the scans it
 learnt from have none. The returns fraction of a student against its teacher's shows whether its
-few steps blur the sensor's drop-outs. Prints, per domain, the mean fraction over the scans and its
+few steps blur the sensor's drop-outs. The row range spread (the standard deviation of one row's
+returned ranges, averaged over the rows) shows whether they draw the surfaces a beam sees closer
+together than their teacher does. Prints, per domain, the mean of each over the scans and its
 spread; every scan has its own sampling seed, the same for every checkpoint.
 """
 
@@ -38,10 +40,23 @@ def returns_fraction(image: np.ndarray, spec) -> float:
     return float(decode(image, spec)[2].mean())
 
 
-def sampled_fractions(den, payload: dict, path: Path, cache: dict, domain: str, seeds: list[int],
-                      batch: int) -> tuple[str, list[float]]:
-    """(sampler label, the returns fraction of each seed's scan) of one loaded checkpoint with its own
-    sampler (a student's DDIM steps, the generator's configured sampler)."""
+def row_range_spread(image: np.ndarray, spec) -> float:
+    """Mean over the image's rows (those with two returns or more) of the standard deviation of
+    their returns' ranges, in metres: how far apart the surfaces one beam sees around the sweep
+    are. A network that averages what it cannot tell apart draws them closer together."""
+    ranges, _, returns = decode(image, spec)
+    spreads = [float(r[m].std()) for r, m in zip(ranges, returns) if m.sum() > 1]
+    return statistics.fmean(spreads) if spreads else 0.0
+
+
+def scan_measures(image: np.ndarray, spec) -> dict[str, float]:
+    return {"returns": returns_fraction(image, spec), "row_range_spread_m": row_range_spread(image, spec)}
+
+
+def sampled_measures(den, payload: dict, path: Path, cache: dict, domain: str, seeds: list[int],
+                     batch: int) -> tuple[str, list[dict]]:
+    """(sampler label, :func:`scan_measures` of each seed's scan) of one loaded checkpoint with its
+    own sampler (a student's DDIM steps, the generator's configured sampler)."""
     cfg = payload["config"]
     sampling = student_sampling(cfg["sampling"], payload, path)
     spec = domain_points_spec(cfg, payload, domain)
@@ -53,7 +68,7 @@ def sampled_fractions(den, payload: dict, path: Path, cache: dict, domain: str, 
             images = generate(den, payload["domains"].index(domain), entry["tokens"][0], entry["mask"][0],
                               seeds[i:i + batch], spec.shape, sampler=sampling["sampler"], steps=int(sampling["steps"]),
                               schedule=schedule)
-            fractions += [returns_fraction(image, spec) for image in images.numpy()]
+            fractions += [scan_measures(image, spec) for image in images.numpy()]
     kind = "student" if payload.get("student") else "generator"
     return f"{kind} {sampling['sampler']} x {sampling['steps']}", fractions
 
@@ -81,17 +96,20 @@ def main() -> None:
     rows, figures = [], {}
     for domain in args.only or payload["domains"]:
         spec = domain_points_spec(cfg, payload, domain)
-        measured = {"training scans": [returns_fraction(load_range_image(f, shape), spec)
-                                       for f in index[domain]["files"]]}
+        measured = {"training scans": [scan_measures(load_range_image(f, shape), spec) for f in index[domain]["files"]]}
         for path, den, own in checkpoints:
-            label, fractions = sampled_fractions(den, own, path, cache, domain, seeds, args.batch)
-            measured[f"{label} ({path})" if label in measured else label] = fractions
-        figures[domain] = measured
-        for label, fractions in measured.items():
-            mean, spread = statistics.fmean(fractions), statistics.stdev(fractions)
-            print(f"{domain:>10} {label:>40}: returns {mean:.3f} +- {spread:.3f} of the pixels ({len(fractions)} scans)")
-            rows.append({"what": f"{domain}: {label}", "returns": f"{mean:.3f} +- {spread:.3f} ({len(fractions)} scans)"})
-    bench_record.write(args.out, rows, figures, columns=["what", "returns"])
+            label, scans = sampled_measures(den, own, path, cache, domain, seeds, args.batch)
+            measured[f"{label} ({path})" if label in measured else label] = scans
+        figures[domain] = {label: {key: [scan[key] for scan in scans] for key in scans[0]}
+                           for label, scans in measured.items()}
+        for label, values in figures[domain].items():
+            returns, spread = values["returns"], values["row_range_spread_m"]
+            row = {"what": f"{domain}: {label}",
+                   "returns": f"{statistics.fmean(returns):.3f} +- {statistics.stdev(returns):.3f} ({len(returns)} scans)",
+                   "row range spread": f"{statistics.fmean(spread):.2f} +- {statistics.stdev(spread):.2f} m"}
+            print(f"{domain:>10} {label:>40}: returns {row['returns']}, row range spread {row['row range spread']}")
+            rows.append(row)
+    bench_record.write(args.out, rows, figures, columns=["what", "returns", "row range spread"])
 
 
 if __name__ == "__main__":
