@@ -119,6 +119,7 @@ _DOWN = config["downstream"]
 _LABELER = _DOWN["labeler"]
 _DET = _DOWN["det"]
 _GEN_TRAIN = config["generator"]["training"]
+_DISTILL = config["generator"]["distillation"]
 # A shard's network evaluations: the distilled student's DDIM steps where sampling uses it.
 _SAMPLING_STEPS = STUDENT_STEPS if config["generator"]["sampling"]["student"] else config["generator"]["sampling"]["steps"]
 _LABELER_MODEL = {_LABELER["backbone"]: _LABELER["model"]}
@@ -251,9 +252,12 @@ _RULES = {
     "train_single_domain": (_GEN_TRAIN["device"], _generator_train_work(),
                             _runtime(_train_seconds(_baseline_iterations())), _GEN_TRAIN["num_workers"] + 1),
     # A distillation step runs the teacher twice (forward only) beside the student's forward and
-    # backward: about 5 forward passes against a training step's 3.
+    # backward: about 5 forward passes against a training step's 3. The return calibration then
+    # samples its scans of every domain with the teacher's and the student's steps.
     "distill_generator": (_GEN_TRAIN["device"], _generator_train_work(),
-                          _runtime(_train_seconds(distillation_iterations(config["generator"])) * 5 / 3),
+                          _runtime(_train_seconds(distillation_iterations(config["generator"])) * 5 / 3
+                                   + sampling_seconds(len(DOMAIN_NAMES) * _DISTILL["return_calibration"],
+                                                      _DISTILL["teacher_steps"] + STUDENT_STEPS)),
                           _GEN_TRAIN["num_workers"] + 1),
     "sample_domain": (config["generator"]["sampling"]["device"],
                       _generator_sample_work(config["generator"]["sampling"]["batch_size"]),

@@ -335,3 +335,15 @@ def test_sampling_from_the_student_asks_for_its_steps_and_its_distillation_fits(
     assert 0.15 < int(distill["runtime"]) / int(student["train_generator"]["runtime"]) < 0.25
     # A 500-scan shard in the student's 4 DDIM steps instead of DDPM x 256.
     assert int(student["sample_domain"]["runtime"]) < int(teacher["sample_domain"]["runtime"]) / 4
+
+
+def test_a_distillation_that_calibrates_its_student_asks_for_the_calibration_s_sampling(workdir, tmp_path):
+    target = ("--", "data/samples/Vehicle/shard_0")
+    runtimes = {}
+    for scans in (0, 64, 128):
+        overlay = tmp_path / f"calibrated{scans}.yaml"
+        overlay.write_text("generator: {sampling: {student: true}, distillation: {return_calibration: %d}}\n" % scans)
+        runtimes[scans] = int(_dry_run_resources(workdir, *PAPER, str(overlay), *target)["distill_generator"]["runtime"])
+    # Every domain's scans, sampled with the teacher's 256 steps and the student's 4: linear in the scans.
+    assert runtimes[0] < runtimes[64] < runtimes[128]
+    assert abs((runtimes[128] - runtimes[0]) - 2 * (runtimes[64] - runtimes[0])) <= 2
