@@ -288,7 +288,7 @@ def teacher_weights(path: str | Path, settings: dict, names: list[str], cache: d
 
 
 def student_return_thresholds(student: torch.nn.Module, teacher: torch.nn.Module, settings: dict, payload: dict,
-                              cache: dict, seed: int) -> torch.Tensor:
+                              cache: dict, seed: int, log=print) -> torch.Tensor:
     """The finished student's per-row return thresholds against the trained generator
     (``distillation.return_calibration`` scans per domain; :mod:`omnilidar.generator.return_decision`)."""
     from omnilidar.generator.return_decision import calibrate_returns
@@ -297,7 +297,6 @@ def student_return_thresholds(student: torch.nn.Module, teacher: torch.nn.Module
     d = settings["diffusion"]
     names = payload["domains"]
     specs = {n: domain_points_spec(settings, payload, n) for n in names}
-    log = logging.getLogger("mmengine").info
     return calibrate_returns(student.eval(), teacher.eval(), names, cache["domains"], specs, settings["distillation"],
                              CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"]),
                              int(settings["distillation"]["return_calibration"]), seed, log=log)
@@ -509,7 +508,8 @@ def train_generator(
                                   "teacher": str(teacher), "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"]),
                                   "method": dist["method"], "return_calibration": int(dist["return_calibration"])}
             if int(dist["return_calibration"]):
-                payload["return_thresholds"] = student_return_thresholds(final, frozen, own, payload, cache, seed)
+                payload["return_thresholds"] = student_return_thresholds(final, frozen, own, payload, cache, seed,
+                                                                        log=runner.logger.info)
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
     logging.getLogger("mmengine").info(f"wrote {out}")
