@@ -14,8 +14,8 @@ from omnilidar.data.range_image import decode
 from omnilidar.errors import InputError
 from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.data import rng_for
-from omnilidar.generator.diffusion import generate, scan_seed
-from omnilidar.generator.return_decision import apply_return_thresholds, calibration_seeds, row_thresholds
+from omnilidar.generator.diffusion import apply_return_thresholds, generate, scan_seed
+from omnilidar.generator.return_decision import calibration_seeds, row_thresholds
 from omnilidar.generator.sampling import domain_points_spec
 from omnilidar.generator.text import load_prompt_cache
 from omnilidar.generator.training import train_generator

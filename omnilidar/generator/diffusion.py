@@ -16,7 +16,6 @@ import zlib
 import torch
 
 from omnilidar.generator.data import rng_for
-from omnilidar.generator.return_decision import apply_return_thresholds
 from omnilidar.generator.samplers import make_scheduler
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma, bf16_safe, min_snr_weight
 
@@ -75,6 +74,14 @@ def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.T
         return (pred.float() - v).square().mean()
     per_scan = (pred.float() - eps).square().mean(dim=(1, 2, 3))
     return (min_snr_weight(logsnr, gamma) * per_scan).mean()
+
+
+def apply_return_thresholds(images: torch.Tensor, thresholds: torch.Tensor) -> torch.Tensor:
+    """(B, 2, H, W) images with every pixel whose encoded range is at or below its row's threshold
+    (H,) made empty (-1 in both channels): a calibrated student's return decision
+    (:mod:`omnilidar.generator.return_decision`)."""
+    empty = images[:, 0] <= thresholds.to(images)[None, :, None]
+    return torch.where(empty[:, None], torch.full_like(images, -1.0), images)
 
 
 @torch.no_grad()

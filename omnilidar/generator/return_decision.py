@@ -9,8 +9,9 @@ trained generator's return fraction per domain and image row on N seeded scans (
 teacher's grid, the sampler the student learnt from) and the student's on the same noise, and sets
 a per-row threshold on the student's encoded range: where the student draws more returns than its
 teacher, its lowest values are drop-outs until the fractions agree. The thresholds travel in the
-student's checkpoint (``return_thresholds``, (domains, rows)) and :func:`apply_return_thresholds`
-applies them to every scan the student samples. Calibration seeds are their own stream, so no
+student's checkpoint (``return_thresholds``, (domains, rows)) and
+:func:`omnilidar.generator.diffusion.apply_return_thresholds` applies them to every scan the student
+samples. Calibration seeds are their own stream, so no
 evaluation scan's noise is among them.
 """
 
@@ -22,6 +23,8 @@ import numpy as np
 import torch
 
 from omnilidar.generator.data import rng_for
+from omnilidar.generator.diffusion import generate
+from omnilidar.generator.distill_steps import student_sampler, student_steps
 
 CALIBRATION_STREAM = 0xCA1B
 
@@ -48,13 +51,6 @@ def row_thresholds(student_range: np.ndarray, student_returns: np.ndarray, teach
     return out
 
 
-def apply_return_thresholds(images: torch.Tensor, thresholds: torch.Tensor) -> torch.Tensor:
-    """(B, 2, H, W) images with every pixel whose encoded range is at or below its row's threshold
-    (H,) made empty (-1 in both channels)."""
-    empty = images[:, 0] <= thresholds.to(images)[None, :, None]
-    return torch.where(empty[:, None], torch.full_like(images, -1.0), images)
-
-
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, names: list[str], prompts: dict,
                       specs: dict, distillation: dict, schedule, scans: int, seed: int, batch: int = 8,
                       log=print) -> torch.Tensor:
@@ -62,8 +58,6 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, names:
     with DDIM x ``teacher_steps`` on the distillation's spacing), ``scans`` seeded scans per domain;
     ``prompts``: the prompt cache's ``domains``, ``specs``: each domain's back-projection geometry."""
     from omnilidar.data.range_image import decode
-    from omnilidar.generator.diffusion import generate
-    from omnilidar.generator.distill_steps import student_sampler, student_steps
 
     sampler = student_sampler(distillation)
     out = []
