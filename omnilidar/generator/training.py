@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import copy
 import json
-import logging
 import os
 import time
 from pathlib import Path
@@ -486,7 +485,7 @@ def train_generator(
                       **{k: v for k, v in summary.items() if k != "work_dir"}}
             with atomic_path(out) as tmp:
                 Path(tmp).write_text(json.dumps(record, indent=1, default=str))
-        logging.getLogger("mmengine").info(f"segment up to iteration {until} done; state in {run_dir}, record {out}")
+        runner.logger.info(f"segment up to iteration {until} done; state in {run_dir}, record {out}")
         return summary
     if is_main_process():
         payload = {
@@ -512,5 +511,5 @@ def train_generator(
                                                                         log=runner.logger.info)
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
-    logging.getLogger("mmengine").info(f"wrote {out}")
+    runner.logger.info(f"wrote {out}")
     return summary
