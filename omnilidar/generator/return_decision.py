@@ -51,24 +51,30 @@ def row_thresholds(student_range: np.ndarray, student_returns: np.ndarray, teach
     return out
 
 
-def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, names: list[str], prompts: dict,
-                      specs: dict, distillation: dict, schedule, scans: int, seed: int, batch: int = 8,
-                      log=print) -> torch.Tensor:
-    """(len(names), H) float32 thresholds of ``student`` against ``teacher`` (the trained generator
-    with DDIM x ``teacher_steps`` on the distillation's spacing), ``scans`` seeded scans per domain;
-    ``prompts``: the prompt cache's ``domains``, ``specs``: each domain's back-projection geometry."""
+def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
+                      seed: int, batch: int = 8, log=print) -> torch.Tensor:
+    """(domains, H) float32 thresholds of ``student`` against ``teacher`` (the trained generator
+    with DDIM x ``teacher_steps`` on the distillation's spacing) on ``return_calibration`` seeded
+    scans per domain; ``payload``: the student's checkpoint contents (its settings, domains and
+    their back-projection geometry)."""
     from omnilidar.data.range_image import decode
+    from omnilidar.generator.sampling import domain_points_spec
+    from omnilidar.generator.schedule import CosineLogSNRSchedule
 
-    sampler = student_sampler(distillation)
+    settings = payload["config"]
+    distillation, d = settings["distillation"], settings["diffusion"]
+    schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
+    scans, sampler = int(distillation["return_calibration"]), student_sampler(distillation)
+    student, teacher = student.eval(), teacher.eval()
     out = []
-    for d, name in enumerate(names):
-        spec, entry = specs[name], prompts[name]
+    for index, name in enumerate(payload["domains"]):
+        spec, entry = domain_points_spec(settings, payload, name), prompt_cache["domains"][name]
         seeds = calibration_seeds(seed, name, scans)
         sampled = {}
         for who, net, steps in (("teacher", teacher, int(distillation["teacher_steps"])),
                                 ("student", student, student_steps(distillation))):
             sampled[who] = np.concatenate([
-                generate(net, d, entry["tokens"][0], entry["mask"][0], seeds[i:i + batch], spec.shape, sampler,
+                generate(net, index, entry["tokens"][0], entry["mask"][0], seeds[i:i + batch], spec.shape, sampler,
                          steps, schedule).numpy() for i in range(0, scans, batch)])
         returns = {who: np.stack([decode(img, spec)[2] for img in images]) for who, images in sampled.items()}
         out.append(row_thresholds(sampled["student"][:, 0], returns["student"], returns["teacher"]))

@@ -47,6 +47,7 @@ from omnilidar.generator.distill import compression_loss, consistency_loss, dist
 from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
                                                round_iterations, round_steps, starts_from_teacher, student_model,
                                                student_sampler, student_steps)
+from omnilidar.generator.return_decision import calibrate_returns
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
@@ -286,21 +287,6 @@ def teacher_weights(path: str | Path, settings: dict, names: list[str], cache: d
     return frozen
 
 
-def student_return_thresholds(student: torch.nn.Module, teacher: torch.nn.Module, settings: dict, payload: dict,
-                              cache: dict, seed: int, log=print) -> torch.Tensor:
-    """The finished student's per-row return thresholds against the trained generator
-    (``distillation.return_calibration`` scans per domain; :mod:`omnilidar.generator.return_decision`)."""
-    from omnilidar.generator.return_decision import calibrate_returns
-    from omnilidar.generator.sampling import domain_points_spec
-
-    d = settings["diffusion"]
-    names = payload["domains"]
-    specs = {n: domain_points_spec(settings, payload, n) for n in names}
-    return calibrate_returns(student.eval(), teacher.eval(), names, cache["domains"], specs, settings["distillation"],
-                             CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"]),
-                             int(settings["distillation"]["return_calibration"]), seed, log=log)
-
-
 def train_generator(
     settings: dict,
     domains_index: str | Path,
@@ -507,8 +493,8 @@ def train_generator(
                                   "teacher": str(teacher), "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"]),
                                   "method": dist["method"], "return_calibration": int(dist["return_calibration"])}
             if int(dist["return_calibration"]):
-                payload["return_thresholds"] = student_return_thresholds(final, frozen, own, payload, cache, seed,
-                                                                        log=runner.logger.info)
+                payload["return_thresholds"] = calibrate_returns(final, frozen, payload, cache, seed,
+                                                                 log=runner.logger.info)
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
     runner.logger.info(f"wrote {out}")
