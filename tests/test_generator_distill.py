@@ -525,7 +525,10 @@ def test_a_distillation_with_a_pseudo_huber_error_trains_another_student(teacher
     root, settings, index, prompts, _ = teacher
     huber = copy.deepcopy(settings)
     huber["distillation"]["huber_c"] = 0.01
-    train_generator(huber, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3, teacher=root / "model.pt")
+    shutil.copytree(root / "student_work", tmp_path / "work")  # the finished squared-error distillation's state
+    summary = train_generator(huber, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                              teacher=root / "model.pt")
+    assert summary["resumed_from"] == 0  # another loss is another distillation: it starts afresh
     a, b = _state(root / "student.pt"), _state(tmp_path / "student.pt")
     assert not all(torch.equal(a[k], b[k]) for k in a)
     den, payload = load_generator(tmp_path / "student.pt")
