@@ -107,24 +107,29 @@ def pixel_error(diff: torch.Tensor, huber_c: float | None = None) -> torch.Tenso
     return torch.sqrt(diff.square() + huber_c**2) - huber_c
 
 
-def _weighted_x0_error(student_out: torch.Tensor, z_t: torch.Tensor, logsnr: torch.Tensor,
-                       target: torch.Tensor, huber_c: float | None = None) -> torch.Tensor:
-    """The student's x0 (unclamped) against ``target``, weighted by max(SNR, 1) ("truncated SNR"),
-    per pixel squared or pseudo-Huber (:func:`pixel_error`)."""
-    x0 = predict_x0(z_t, student_out.float(), logsnr, clamp=False)
+def weighted_x0_error(x0: torch.Tensor, logsnr: torch.Tensor, target: torch.Tensor,
+                      huber_c: float | None = None) -> torch.Tensor:
+    """An x0 estimate against ``target``, weighted by max(SNR, 1) ("truncated SNR"), per pixel
+    squared or pseudo-Huber (:func:`pixel_error`)."""
     weight = torch.clamp(torch.exp(logsnr.double()), min=1.0).float()
     return (weight * pixel_error(x0 - target, huber_c).mean(dim=(1, 2, 3))).mean()
 
 
-def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
-                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
-                      generator: torch.Generator, crop_width: int | None = None,
-                      spacing: str = "uniform", huber_c: float | None = None) -> torch.Tensor:
-    """Truncated-SNR weighted x0 error of the ``steps``-step student against two teacher steps.
+def _weighted_x0_error(student_out: torch.Tensor, z_t: torch.Tensor, logsnr: torch.Tensor,
+                       target: torch.Tensor, huber_c: float | None = None) -> torch.Tensor:
+    """:func:`weighted_x0_error` of the student's (unclamped) x0 from its network output."""
+    return weighted_x0_error(predict_x0(z_t, student_out.float(), logsnr, clamp=False), logsnr, target, huber_c)
+
+
+def progressive_pair(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
+                     tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
+                     generator: torch.Generator, crop_width: int | None = None, spacing: str = "uniform"):
+    """One draw of progressive distillation: (the training scans, windowed where training crops,
+    the ``steps``-step student's unclamped x0 at a grid time t, the x0 with which its one DDIM step
+    lands where two teacher steps do, logSNR at t).
 
     Noise, times and azimuth windows come from ``generator`` in the order of
-    :func:`omnilidar.generator.diffusion.epsilon_loss` (windows, time, noise).
-    """
+    :func:`omnilidar.generator.diffusion.epsilon_loss` (windows, time, noise)."""
     image, extra, index, eps = _draw(image, steps, generator, crop_width)
     l_t, l_mid, l_end = _grid_logsnr(schedule, steps, spacing, index, (0, 1, 2))
     z_t = _noised(image, eps, l_t)
@@ -134,7 +139,19 @@ def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image:
         z_end = ddim_move(predict_x0(z_mid, teacher(z_mid, l_mid, domain, tokens, mask, **extra), l_mid),
                           z_mid, l_mid, l_end)
         target = two_step_target(z_t, z_end, l_t, l_end)
-    return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target, huber_c)
+    x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
+    return image, x0, target, l_t
+
+
+def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
+                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
+                      generator: torch.Generator, crop_width: int | None = None,
+                      spacing: str = "uniform", huber_c: float | None = None) -> torch.Tensor:
+    """Truncated-SNR weighted x0 error of the ``steps``-step student against two teacher steps
+    (drawn as :func:`progressive_pair` draws)."""
+    _, x0, target, l_t = progressive_pair(student, teacher, image, domain, tokens, mask, schedule, steps, generator,
+                                          crop_width, spacing)
+    return weighted_x0_error(x0, l_t, target, huber_c)
 
 
 def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,

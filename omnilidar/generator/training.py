@@ -43,7 +43,9 @@ from omnilidar.errors import InputError
 from omnilidar.generator.data import RangeImageDataset, collate, make_batch_sampler, read_domains_index, rng_for
 from omnilidar.generator.checkpoint import CHECKPOINT_FORMAT, load_generator
 from omnilidar.generator.diffusion import epsilon_loss
-from omnilidar.generator.distill import compression_loss, consistency_loss, distillation_loss
+from omnilidar.generator.adversarial import build_critic, critic_loss, fooling_loss
+from omnilidar.generator.distill import (compression_loss, consistency_loss, distillation_loss, progressive_pair,
+                                         weighted_x0_error)
 from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
                                                round_iterations, round_steps, starts_from_teacher, student_model,
                                                student_sampler, student_steps)
@@ -82,7 +84,8 @@ def trajectory_settings(settings: dict, distilling: bool = False) -> dict:
 
 
 def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, prompt_mask: torch.Tensor, seed: int,
-                         teacher: torch.nn.Module | None = None, cpu_bf16: bool = False):
+                         teacher: torch.nn.Module | None = None, cpu_bf16: bool = False,
+                         critic: torch.nn.Module | None = None):
     """The mmengine adapter: ``loss`` mode is :func:`omnilidar.generator.diffusion.epsilon_loss`
     with noise drawn from a generator keyed by (seed, rank, iteration).
 
@@ -91,7 +94,8 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
     first learns the teacher's denoiser (compression), then the rounds; round 0's teacher is the
     trained generator, every later round's a frozen copy of the student as the previous round
     left it. That copy and its round are part of the model's state, so a checkpoint resumes with
-    the teacher of its round.
+    the teacher of its round. A ``critic`` (:mod:`omnilidar.generator.adversarial`) adds its
+    adversarial term to the last round and trains beside the student; it is part of the state too.
 
     ``cpu_bf16``: the loss of a model on the CPU runs under bf16 autocast (on CUDA the optimizer
     wrapper autocasts)."""
@@ -117,6 +121,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                 self.round_teacher = copy.deepcopy(denoiser).requires_grad_(False)
                 self.register_buffer("teacher_round", torch.zeros((), dtype=torch.long))
                 self.compression = compression_iterations(settings)
+            self.critic = critic
 
         def train(self, mode: bool = True):
             super().train(mode)
@@ -153,10 +158,18 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             if int(self.teacher_round) < round_index:  # a new round: the student becomes the teacher
                 self.round_teacher.load_state_dict(self.denoiser.state_dict())
                 self.teacher_round.fill_(round_index)
-            loss = distillation_loss(self.denoiser, self.round_teacher if round_index else self.teacher, *args,
-                                     round_steps(dist, round_index), gen, crop_width=self.crop_width,
-                                     spacing=dist["spacing"], huber_c=dist["huber_c"])
-            return {"loss": loss}
+            round_teacher = self.round_teacher if round_index else self.teacher
+            if self.critic is None or round_index < int(dist["rounds"]) - 1:
+                loss = distillation_loss(self.denoiser, round_teacher, *args, round_steps(dist, round_index), gen,
+                                         crop_width=self.crop_width, spacing=dist["spacing"], huber_c=dist["huber_c"])
+                return {"loss": loss}
+            # The last round adds a critic of the student's scans against the training scans.
+            real, x0, target, l_t = progressive_pair(self.denoiser, round_teacher, *args, round_steps(dist, round_index),
+                                                     gen, crop_width=self.crop_width, spacing=dist["spacing"])
+            loss = weighted_x0_error(x0, l_t, target, dist["huber_c"])
+            return {"loss": loss,
+                    "loss_fooling": fooling_loss(self.critic, x0, domain, loss, float(dist["adversarial_weight"])),
+                    "loss_critic": critic_loss(self.critic, real, x0.clamp(-1.0, 1.0), domain)}
 
     return DiffusionModel()
 
@@ -332,6 +345,9 @@ def train_generator(
     if dist is not None and (dist["teacher_steps"] >> dist["rounds"]) << dist["rounds"] != dist["teacher_steps"]:
         raise InputError(None, f"generator.distillation: teacher_steps {dist['teacher_steps']} cannot be halved "
                                f"{dist['rounds']} times")
+    if dist is not None and float(dist["adversarial_weight"]) > 0 and dist["method"] != "progressive":
+        raise InputError(None, f"generator.distillation.adversarial_weight {dist['adversarial_weight']} needs "
+                               f"method progressive (its last round), not {dist['method']}")
     if dist is not None and student_model(settings)["num_res_blocks"] > settings["model"]["num_res_blocks"]:
         raise InputError(None, f"generator.distillation.student_res_blocks {dist['student_res_blocks']} exceeds the "
                                f"trained generator's model.num_res_blocks {settings['model']['num_res_blocks']}: "
@@ -389,11 +405,17 @@ def train_generator(
     # (omnilidar.generator.schedule.BF16_MIN_LOGSNR; the students distilled in bf16 learnt from it).
     bf16 = bool(tr["bf16"]) and dist is None
     cpu_bf16 = bf16 and not cuda and cpu_has_native_bf16()
-    model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen, cpu_bf16=cpu_bf16)
+    critic = None
+    if dist is not None and float(dist["adversarial_weight"]) > 0:
+        critic = build_critic(denoiser.cfg.in_channels, len(names), int(rng_for(seed, 0xC217).integers(2**63 - 1)))
+    model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen, cpu_bf16=cpu_bf16,
+                                 critic=critic)
 
     lr = tr["lr"] if dist is None else dist["lr"]
     optimizer = dict(type="AdamW", lr=lr, betas=tuple(tr["betas"]), weight_decay=tr["weight_decay"])
     optim_wrapper = dict(type="OptimWrapper", optimizer=optimizer)
+    if critic is not None:  # the critic starts from scratch in the last round and learns at its own rate
+        optim_wrapper["paramwise_cfg"] = dict(custom_keys={"critic.": dict(lr_mult=float(dist["critic_lr"]) / lr)})
     if cuda and bf16:
         optim_wrapper = dict(type="AmpOptimWrapper", dtype="bfloat16", optimizer=optimizer)
     if tr["grad_clip"] > 0:
