@@ -130,6 +130,19 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                 self.round_teacher.eval()
             return self
 
+        def train_step(self, data, optim_wrapper):
+            """With a critic (two optimizers), the student steps on its losses and the critic on its own."""
+            if self.critic is None:
+                return super().train_step(data, optim_wrapper)
+            losses = self._run_forward(self.data_preprocessor(data, True), mode="loss")
+            critic_loss = losses.pop("loss_critic", None)  # the last round's only
+            student_loss, log_vars = self.parse_losses(losses)
+            optim_wrapper["denoiser"].update_params(student_loss)
+            if critic_loss is not None:
+                optim_wrapper["critic"].update_params(critic_loss)
+                log_vars["loss_critic"] = critic_loss.detach()
+            return log_vars
+
         def forward(self, image=None, domain=None, prompt=None, mode: str = "loss"):
             if mode != "loss":
                 raise ValueError(f"DiffusionModel supports mode='loss' only, got {mode!r}")
@@ -348,6 +361,9 @@ def train_generator(
     if dist is not None and float(dist["adversarial_weight"]) > 0 and dist["method"] != "progressive":
         raise InputError(None, f"generator.distillation.adversarial_weight {dist['adversarial_weight']} needs "
                                f"method progressive (its last round), not {dist['method']}")
+    if dist is not None and float(dist["adversarial_weight"]) > 0 and _dist_info()[2] > 1:
+        raise InputError(None, "generator.distillation.adversarial_weight: the critic trains on one process; "
+                               "distil on one device (its second optimizer has no multi-process step here)")
     if dist is not None and student_model(settings)["num_res_blocks"] > settings["model"]["num_res_blocks"]:
         raise InputError(None, f"generator.distillation.student_res_blocks {dist['student_res_blocks']} exceeds the "
                                f"trained generator's model.num_res_blocks {settings['model']['num_res_blocks']}: "
@@ -414,12 +430,20 @@ def train_generator(
     lr = tr["lr"] if dist is None else dist["lr"]
     optimizer = dict(type="AdamW", lr=lr, betas=tuple(tr["betas"]), weight_decay=tr["weight_decay"])
     optim_wrapper = dict(type="OptimWrapper", optimizer=optimizer)
-    if critic is not None:  # the critic starts from scratch in the last round and learns at its own rate
-        optim_wrapper["paramwise_cfg"] = dict(custom_keys={"critic.": dict(lr_mult=float(dist["critic_lr"]) / lr)})
     if cuda and bf16:
         optim_wrapper = dict(type="AmpOptimWrapper", dtype="bfloat16", optimizer=optimizer)
     if tr["grad_clip"] > 0:
         optim_wrapper["clip_grad"] = dict(max_norm=tr["grad_clip"])
+    if critic is not None:  # two optimizers: the critic's is its own, unclipped, at the usual GAN betas
+        from mmengine.optim import OptimWrapper
+
+        student_clip = dict(max_norm=tr["grad_clip"]) if tr["grad_clip"] > 0 else None
+        optim_wrapper = {
+            "denoiser": OptimWrapper(torch.optim.AdamW(denoiser.parameters(), lr=lr, betas=tuple(tr["betas"]),
+                                                       weight_decay=tr["weight_decay"]), clip_grad=student_clip),
+            "critic": OptimWrapper(torch.optim.Adam(critic.parameters(), lr=float(dist["critic_lr"]),
+                                                    betas=(0.0, 0.99))),
+        }
     param_scheduler = None
     if tr["warmup_iters"] > 0 and dist is None:  # a student starts from trained weights
         param_scheduler = [
