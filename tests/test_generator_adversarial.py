@@ -122,3 +122,12 @@ def test_a_critic_with_consistency_distillation_is_one_clear_error(teacher, tmp_
     with pytest.raises(InputError, match="adversarial_weight.*progressive"):
         train_generator(s, index, prompts, tmp_path / "work", tmp_path / "s.pt", seed=3, teacher=root / "model.pt")
     assert not (tmp_path / "s.pt").exists()
+
+
+def test_a_critic_on_several_processes_is_one_clear_error(teacher, tmp_path, monkeypatch):
+    root, settings, index, prompts, _ = teacher
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(InputError, match="one process"):
+        train_generator(_adversarial(settings), index, prompts, tmp_path / "work", tmp_path / "s.pt", seed=3,
+                        teacher=root / "model.pt")
+    assert not (tmp_path / "s.pt").exists()

@@ -50,6 +50,12 @@ def round_iterations(distillation: dict) -> list[int]:
     return rounds
 
 
+def critic_iterations(distillation: dict) -> int:
+    """Optimizer steps in which an adversarial critic trains beside the student (the last round,
+    where ``adversarial_weight`` > 0)."""
+    return round_iterations(distillation)[-1] if float(distillation.get("adversarial_weight") or 0) > 0 else 0
+
+
 def round_at(distillation: dict, step: int) -> int:
     """The round (0-based) that optimizer step ``step`` of the rounds (counted after compression)
     belongs to; steps past the last round count as the last round."""
