@@ -39,8 +39,8 @@ class _Conv(nn.Module):
 
 
 class Critic(nn.Module):
-    """Patch logits for range images of ``channels`` channels and ``num_domains`` domains:
-    three levels (the last two at half resolution each), then per location a linear logit plus the
+    """Patch logits for range images of ``channels`` channels and ``num_domains`` domains: four
+    convolutions at full, half and quarter resolution, then per location a linear logit plus the
     projection of the location's features on the domain's embedding."""
 
     def __init__(self, channels: int, num_domains: int, width: int = 32):

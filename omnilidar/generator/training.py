@@ -135,12 +135,12 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             if self.critic is None:
                 return super().train_step(data, optim_wrapper)
             losses = self._run_forward(self.data_preprocessor(data, True), mode="loss")
-            critic_loss = losses.pop("loss_critic", None)  # the last round's only
+            critic_term = losses.pop("loss_critic", None)  # the last round's only
             student_loss, log_vars = self.parse_losses(losses)
             optim_wrapper["denoiser"].update_params(student_loss)
-            if critic_loss is not None:
-                optim_wrapper["critic"].update_params(critic_loss)
-                log_vars["loss_critic"] = critic_loss.detach()
+            if critic_term is not None:
+                optim_wrapper["critic"].update_params(critic_term)
+                log_vars["loss_critic"] = critic_term.detach()
             return log_vars
 
         def forward(self, image=None, domain=None, prompt=None, mode: str = "loss"):
