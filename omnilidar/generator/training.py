@@ -437,10 +437,10 @@ def train_generator(
     if critic is not None:  # two optimizers: the critic's is its own, unclipped, at the usual GAN betas
         from mmengine.optim import OptimWrapper
 
-        student_clip = dict(max_norm=tr["grad_clip"]) if tr["grad_clip"] > 0 else None
+        student_settings = {k: v for k, v in optimizer.items() if k != "type"}  # the AdamW above
         optim_wrapper = {
-            "denoiser": OptimWrapper(torch.optim.AdamW(denoiser.parameters(), lr=lr, betas=tuple(tr["betas"]),
-                                                       weight_decay=tr["weight_decay"]), clip_grad=student_clip),
+            "denoiser": OptimWrapper(torch.optim.AdamW(denoiser.parameters(), **student_settings),
+                                     clip_grad=optim_wrapper.get("clip_grad")),
             "critic": OptimWrapper(torch.optim.Adam(critic.parameters(), lr=float(dist["critic_lr"]),
                                                     betas=(0.0, 0.99))),
         }
