@@ -253,12 +253,11 @@ _RULES = {
                             _runtime(_train_seconds(_baseline_iterations())), _GEN_TRAIN["num_workers"] + 1),
     # A distillation step runs the teacher twice (forward only) beside the student's forward and
     # backward: about 5 forward passes against a training step's 3. The return calibration then
-    # samples its scans of every domain with the teacher's and the student's steps. A critic's
-    # step (the last round's, with adversarial_weight) cost 1.35 of one without (1.6 s against
-    # 1.2 s, the pruned 1-step student on 2 CPUs).
+    # samples its scans of every domain with the teacher's and the student's steps. A last round
+    # with a critic or distribution matching costs more per step (LAST_ROUND_STEP_COST).
     "distill_generator": (_GEN_TRAIN["device"], _generator_train_work(),
                           _runtime(_train_seconds(distillation_iterations(config["generator"])
-                                                  + 0.35 * critic_iterations(_DISTILL)) * 5 / 3
+                                                  + last_round_extra_steps(_DISTILL)) * 5 / 3
                                    + sampling_seconds(len(DOMAIN_NAMES) * _DISTILL["return_calibration"],
                                                       _DISTILL["teacher_steps"] + STUDENT_STEPS)),
                           _GEN_TRAIN["num_workers"] + 1),

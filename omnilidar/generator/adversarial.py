@@ -23,6 +23,8 @@ import torch
 from torch import nn
 from torch.nn.utils.parametrizations import spectral_norm
 
+from omnilidar.generator.distill import scaled_to_regression
+
 
 class _Conv(nn.Module):
     """A spectral-normalised convolution, padded circularly in azimuth and by zeros in elevation."""
@@ -85,9 +87,4 @@ def fooling_loss(critic: nn.Module, x0: torch.Tensor, domain: torch.Tensor, regr
         fooling = -critic(x0.clamp(-1.0, 1.0), domain).mean()
     finally:
         critic.requires_grad_(True)
-    (g_regression,) = torch.autograd.grad(regression, x0, retain_graph=True)
-    (g_fooling,) = torch.autograd.grad(fooling, x0, retain_graph=True)
-    norm = g_fooling.norm()
-    if not torch.isfinite(norm) or norm == 0:  # every pixel clamped: the critic cannot move the student
-        return fooling * 0.0
-    return fooling * (weight * g_regression.norm() / norm).detach()
+    return scaled_to_regression(fooling, x0, regression, weight)

@@ -44,7 +44,7 @@ def take_columns(images: torch.Tensor, columns: torch.Tensor) -> torch.Tensor:
 def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor, tokens: torch.Tensor,
                  mask: torch.Tensor, schedule: CosineLogSNRSchedule, gamma: float,
                  generator: torch.Generator, crop_width: int | None = None,
-                 weighting: str = "min_snr") -> torch.Tensor:
+                 weighting: str = "min_snr", columns: torch.Tensor | None = None) -> torch.Tensor:
     """The denoising loss of one batch at t ~ U(0, 1); t and epsilon come from ``generator``.
 
     ``weighting``: ``min_snr`` = the min-SNR-gamma weighted epsilon MSE; ``v_uniform`` = the
@@ -55,11 +55,11 @@ def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.T
 
     With ``crop_width`` each scan is trained on one azimuth window of that many columns
     (start drawn from ``generator`` first); the denoiser sees the window's true beam
-    angles, so the same weights sample full sweeps.
+    angles, so the same weights sample full sweeps. ``columns``: the batch is already such windows,
+    of these columns (no crop drawn).
     """
     b = image.shape[0]
-    columns = None
-    if crop_width is not None and crop_width < image.shape[-1]:
+    if columns is None and crop_width is not None and crop_width < image.shape[-1]:
         columns = azimuth_windows(image.shape[-1], crop_width, b, generator, image.device)
         image = take_columns(image, columns)
     t = torch.rand(b, generator=generator, device=image.device, dtype=torch.float32)

@@ -115,6 +115,20 @@ def weighted_x0_error(x0: torch.Tensor, logsnr: torch.Tensor, target: torch.Tens
     return (weight * pixel_error(x0 - target, huber_c).mean(dim=(1, 2, 3))).mean()
 
 
+def scaled_to_regression(term: torch.Tensor, x0: torch.Tensor, regression: torch.Tensor,
+                         weight: float) -> torch.Tensor:
+    """``term`` scaled so that its gradient on the student's ``x0`` has ``weight`` times the norm of
+    ``regression``'s there (the adaptive weight of VQGAN, Esser et al., 2021, taken on the sample
+    rather than a layer): a setting that reads the same whatever the regression's scale. A term
+    with no gradient on ``x0`` (every pixel clamped) contributes 0."""
+    (g_regression,) = torch.autograd.grad(regression, x0, retain_graph=True)
+    (g_term,) = torch.autograd.grad(term, x0, retain_graph=True)
+    norm = g_term.norm()
+    if not torch.isfinite(norm) or norm == 0:
+        return term * 0.0
+    return term * (weight * g_regression.norm() / norm).detach()
+
+
 def _weighted_x0_error(student_out: torch.Tensor, z_t: torch.Tensor, logsnr: torch.Tensor,
                        target: torch.Tensor, huber_c: float | None = None) -> torch.Tensor:
     """:func:`weighted_x0_error` of the student's (unclamped) x0 from its network output."""
@@ -125,8 +139,8 @@ def progressive_pair(student: torch.nn.Module, teacher: torch.nn.Module, image: 
                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
                      generator: torch.Generator, crop_width: int | None = None, spacing: str = "uniform"):
     """One draw of progressive distillation: (the training scans, windowed where training crops,
-    the ``steps``-step student's unclamped x0 at a grid time t, the x0 with which its one DDIM step
-    lands where two teacher steps do, logSNR at t).
+    the denoiser's extra arguments for those windows, the ``steps``-step student's unclamped x0 at
+    a grid time t, the x0 with which its one DDIM step lands where two teacher steps do, logSNR at t).
 
     Noise, times and azimuth windows come from ``generator`` in the order of
     :func:`omnilidar.generator.diffusion.epsilon_loss` (windows, time, noise)."""
@@ -140,7 +154,7 @@ def progressive_pair(student: torch.nn.Module, teacher: torch.nn.Module, image: 
                           z_mid, l_mid, l_end)
         target = two_step_target(z_t, z_end, l_t, l_end)
     x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
-    return image, x0, target, l_t
+    return image, extra, x0, target, l_t
 
 
 def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
@@ -149,7 +163,7 @@ def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image:
                       spacing: str = "uniform", huber_c: float | None = None) -> torch.Tensor:
     """Truncated-SNR weighted x0 error of the ``steps``-step student against two teacher steps
     (drawn as :func:`progressive_pair` draws)."""
-    _, x0, target, l_t = progressive_pair(student, teacher, image, domain, tokens, mask, schedule, steps, generator,
+    _, _, x0, target, l_t = progressive_pair(student, teacher, image, domain, tokens, mask, schedule, steps, generator,
                                           crop_width, spacing)
     return weighted_x0_error(x0, l_t, target, huber_c)
 

@@ -50,10 +50,19 @@ def round_iterations(distillation: dict) -> list[int]:
     return rounds
 
 
-def critic_iterations(distillation: dict) -> int:
-    """Optimizer steps in which an adversarial critic trains beside the student (the last round,
-    where ``adversarial_weight`` > 0)."""
-    return round_iterations(distillation)[-1] if float(distillation.get("adversarial_weight") or 0) > 0 else 0
+# A last-round step with its second network, in steps without one (measured in the job logs of
+# the pruned 1-step student on 2 CPUs, docs/results.md): the patch critic adds its own small
+# network's passes; distribution matching two passes of the trained generator and the fake
+# score's forward and backward.
+LAST_ROUND_STEP_COST = {"adversarial_weight": 1.35, "distribution_matching_weight": 2.0}
+
+
+def last_round_extra_steps(distillation: dict) -> float:
+    """What a last-round term's second network (a critic or a fake score, where its weight is
+    > 0) adds to the distillation, in optimizer steps without one."""
+    last = round_iterations(distillation)[-1]
+    return sum(last * (cost - 1) for key, cost in LAST_ROUND_STEP_COST.items()
+               if float(distillation.get(key) or 0) > 0)
 
 
 def round_at(distillation: dict, step: int) -> int:

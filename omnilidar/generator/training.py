@@ -46,6 +46,7 @@ from omnilidar.generator.diffusion import epsilon_loss
 from omnilidar.generator.adversarial import build_critic, critic_loss, fooling_loss
 from omnilidar.generator.distill import (compression_loss, consistency_loss, distillation_loss, progressive_pair,
                                          weighted_x0_error)
+from omnilidar.generator.distribution_matching import build_fake_score, fake_score_loss, matching_loss
 from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
                                                round_iterations, round_steps, starts_from_teacher, student_model,
                                                student_sampler, student_steps)
@@ -94,8 +95,10 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
     first learns the teacher's denoiser (compression), then the rounds; round 0's teacher is the
     trained generator, every later round's a frozen copy of the student as the previous round
     left it. That copy and its round are part of the model's state, so a checkpoint resumes with
-    the teacher of its round. A ``critic`` (:mod:`omnilidar.generator.adversarial`) adds its
-    adversarial term to the last round and trains beside the student; it is part of the state too.
+    the teacher of its round. A ``critic`` adds its term to the last round and trains beside the
+    student; it is part of the state too: a patch critic of the student's scans
+    (``adversarial_weight``, :mod:`omnilidar.generator.adversarial`) or a fake score of them
+    (``distribution_matching_weight``, :mod:`omnilidar.generator.distribution_matching`).
 
     ``cpu_bf16``: the loss of a model on the CPU runs under bf16 autocast (on CUDA the optimizer
     wrapper autocasts)."""
@@ -176,13 +179,21 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                 loss = distillation_loss(self.denoiser, round_teacher, *args, round_steps(dist, round_index), gen,
                                          crop_width=self.crop_width, spacing=dist["spacing"], huber_c=dist["huber_c"])
                 return {"loss": loss}
-            # The last round adds a critic of the student's scans against the training scans.
-            real, x0, target, l_t = progressive_pair(self.denoiser, round_teacher, *args, round_steps(dist, round_index),
-                                                     gen, crop_width=self.crop_width, spacing=dist["spacing"])
+            # The last round adds a term on the student's scans as a set, from a second network.
+            real, extra, x0, target, l_t = progressive_pair(self.denoiser, round_teacher, *args,
+                                                            round_steps(dist, round_index), gen,
+                                                            crop_width=self.crop_width, spacing=dist["spacing"])
             loss = weighted_x0_error(x0, l_t, target, dist["huber_c"])
-            return {"loss": loss,
-                    "loss_fooling": fooling_loss(self.critic, x0, domain, loss, float(dist["adversarial_weight"])),
-                    "loss_critic": critic_loss(self.critic, real, x0.clamp(-1.0, 1.0), domain)}
+            if float(dist["adversarial_weight"]) > 0:  # a critic against the training scans
+                return {"loss": loss,
+                        "loss_fooling": fooling_loss(self.critic, x0, domain, loss, float(dist["adversarial_weight"])),
+                        "loss_critic": critic_loss(self.critic, real, x0.clamp(-1.0, 1.0), domain)}
+            # a fake score of the student's scans against the trained generator's
+            matching = matching_loss(self.teacher, self.critic, x0, domain, tokens, mask, self.schedule, gen, loss,
+                                     float(dist["distribution_matching_weight"]), extra)
+            fake = fake_score_loss(self.critic, x0, domain, tokens, mask, self.schedule, self.gamma, gen,
+                                   self.weighting, extra)
+            return {"loss": loss, "loss_matching": matching, "loss_critic": fake}
 
     return DiffusionModel()
 
@@ -313,6 +324,23 @@ def teacher_weights(path: str | Path, settings: dict, names: list[str], cache: d
     return frozen
 
 
+def check_last_round_terms(dist: dict | None) -> None:
+    """One clear error for a last-round term (a critic or distribution matching) that cannot run:
+    both at once, with consistency distillation (no last round), or on several processes."""
+    if dist is None:
+        return
+    terms = [k for k in ("adversarial_weight", "distribution_matching_weight") if float(dist[k]) > 0]
+    if len(terms) > 1:
+        raise InputError(None, "generator.distillation: adversarial_weight and distribution_matching_weight each "
+                               "train a second network in the last round; set one of them")
+    if terms and dist["method"] != "progressive":
+        raise InputError(None, f"generator.distillation.{terms[0]} {dist[terms[0]]} needs method progressive "
+                               f"(its last round), not {dist['method']}")
+    if terms and _dist_info()[2] > 1:
+        raise InputError(None, f"generator.distillation.{terms[0]}: its second network trains on one process; "
+                               "distil on one device (its second optimizer has no multi-process step here)")
+
+
 def train_generator(
     settings: dict,
     domains_index: str | Path,
@@ -358,12 +386,7 @@ def train_generator(
     if dist is not None and (dist["teacher_steps"] >> dist["rounds"]) << dist["rounds"] != dist["teacher_steps"]:
         raise InputError(None, f"generator.distillation: teacher_steps {dist['teacher_steps']} cannot be halved "
                                f"{dist['rounds']} times")
-    if dist is not None and float(dist["adversarial_weight"]) > 0 and dist["method"] != "progressive":
-        raise InputError(None, f"generator.distillation.adversarial_weight {dist['adversarial_weight']} needs "
-                               f"method progressive (its last round), not {dist['method']}")
-    if dist is not None and float(dist["adversarial_weight"]) > 0 and _dist_info()[2] > 1:
-        raise InputError(None, "generator.distillation.adversarial_weight: the critic trains on one process; "
-                               "distil on one device (its second optimizer has no multi-process step here)")
+    check_last_round_terms(dist)
     if dist is not None and student_model(settings)["num_res_blocks"] > settings["model"]["num_res_blocks"]:
         raise InputError(None, f"generator.distillation.student_res_blocks {dist['student_res_blocks']} exceeds the "
                                f"trained generator's model.num_res_blocks {settings['model']['num_res_blocks']}: "
@@ -424,6 +447,8 @@ def train_generator(
     critic = None
     if dist is not None and float(dist["adversarial_weight"]) > 0:
         critic = build_critic(denoiser.cfg.in_channels, len(names), int(rng_for(seed, 0xC217).integers(2**63 - 1)))
+    if dist is not None and float(dist["distribution_matching_weight"]) > 0:
+        critic = build_fake_score(frozen)
     model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen, cpu_bf16=cpu_bf16,
                                  critic=critic)
 
@@ -434,7 +459,7 @@ def train_generator(
         optim_wrapper = dict(type="AmpOptimWrapper", dtype="bfloat16", optimizer=optimizer)
     if tr["grad_clip"] > 0:
         optim_wrapper["clip_grad"] = dict(max_norm=tr["grad_clip"])
-    if critic is not None:  # two optimizers: the critic's is its own, unclipped, at the usual GAN betas
+    if critic is not None:  # two optimizers: the second network's is its own, unclipped, at the usual GAN betas
         from mmengine.optim import OptimWrapper
 
         student_settings = {k: v for k, v in optimizer.items() if k != "type"}  # the AdamW above

@@ -1,0 +1,142 @@
+"""Distribution matching in the last distillation round: the direction the student's scans move,
+its relative weight, the fake score's loss, and a real tiny distillation with it (resume,
+provenance, errors)."""
+
+from __future__ import annotations
+
+import copy
+import shutil
+
+import pytest
+import torch
+
+from omnilidar.errors import InputError
+from omnilidar.generator.checkpoint import load_generator
+from omnilidar.generator.diffusion import generate
+from omnilidar.generator.distribution_matching import (build_fake_score, fake_score_loss, matching_direction,
+                                                       matching_loss)
+from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
+from omnilidar.generator.training import train_generator
+from test_generator_distill import _first_prompt, _state, teacher  # noqa: F401
+from test_generator_fixtures import one_torch_thread  # noqa: F401
+
+SCHEDULE = CosineLogSNRSchedule(-15.0, 15.0)
+SHAPE = (2, 2, 8, 32)
+
+
+class _Denoises(torch.nn.Module):
+    """A denoiser whose x0 estimate is ``image`` whatever it is given (it returns that epsilon)."""
+
+    def __init__(self, image: torch.Tensor):
+        super().__init__()
+        self.image = torch.nn.Parameter(image.clone())
+
+    def forward(self, z, logsnr, domain, tokens, mask, **extra):
+        alpha, sigma = (v[:, None, None, None] for v in alpha_sigma(logsnr))
+        return (z - alpha * self.image) / sigma
+
+
+def _args():
+    return torch.tensor([0, 1]), torch.zeros(2, 3, 4), torch.ones(2, 3, dtype=torch.bool)
+
+
+def test_the_student_s_scans_move_towards_the_trained_generator_s_and_away_from_its_own():
+    trained_scan, student_scan = torch.full(SHAPE, 0.4), torch.full(SHAPE, -0.2)
+    trained, fake = _Denoises(trained_scan), _Denoises(student_scan)  # the fake score has learnt the student
+    x0 = student_scan.clone().requires_grad_(True)
+    regression = (x0 - 0.1).square().mean()
+    term = matching_loss(trained, fake, x0, *_args(), SCHEDULE, torch.Generator().manual_seed(0), regression, 1.0)
+    (g,) = torch.autograd.grad(term, x0)
+    stepped = x0.detach() - 0.1 * g / g.abs().max()  # one descent step on the term alone
+    assert (stepped - trained_scan).abs().max() < (student_scan - trained_scan).abs().max()
+    # A fake score that has learnt nothing yet (the trained generator's copy): no direction at all.
+    copy_ = build_fake_score(trained)
+    assert torch.equal(matching_direction(trained, copy_, x0, *_args(), SCHEDULE, torch.Generator().manual_seed(0)),
+                       torch.zeros(SHAPE))
+    assert all(p.requires_grad for p in copy_.parameters())
+
+
+def test_the_matching_gradient_is_the_set_fraction_of_the_regression_s_and_only_the_student_learns():
+    gen = torch.Generator().manual_seed(1)
+    trained, fake = _Denoises(torch.rand(SHAPE, generator=gen) - 0.5), _Denoises(torch.rand(SHAPE, generator=gen))
+    x0 = (0.5 * torch.randn(SHAPE, generator=gen)).requires_grad_(True)
+    regression = (x0 - 0.1).square().mean()
+    for weight in (0.1, 1.0):
+        term = matching_loss(trained, fake, x0, *_args(), SCHEDULE, torch.Generator().manual_seed(2), regression, weight)
+        (g_term,) = torch.autograd.grad(term, x0, retain_graph=True)
+        (g_reg,) = torch.autograd.grad(regression, x0, retain_graph=True)
+        assert torch.allclose(g_term.norm(), weight * g_reg.norm(), rtol=1e-4)
+    matching_loss(trained, fake, x0, *_args(), SCHEDULE, torch.Generator().manual_seed(2), regression, 1.0).backward()
+    assert trained.image.grad is None and fake.image.grad is None and x0.grad is not None
+
+
+def test_the_fake_score_learns_from_the_student_s_scans_without_moving_them():
+    gen = torch.Generator().manual_seed(3)
+    fake = _Denoises(torch.zeros(SHAPE))
+    x0 = (0.3 * torch.randn(SHAPE, generator=gen)).requires_grad_(True)
+    loss = fake_score_loss(fake, x0, *_args(), SCHEDULE, 5.0, torch.Generator().manual_seed(4))
+    loss.backward()
+    assert x0.grad is None and fake.image.grad is not None and torch.isfinite(loss)
+    # The same draws (seeded) give the same loss; another seed another.
+    again = fake_score_loss(fake, x0, *_args(), SCHEDULE, 5.0, torch.Generator().manual_seed(4))
+    other = fake_score_loss(fake, x0, *_args(), SCHEDULE, 5.0, torch.Generator().manual_seed(5))
+    assert again.item() == loss.item() and other.item() != loss.item()
+
+
+def _matching(settings, weight=0.5):
+    s = copy.deepcopy(settings)
+    s["distillation"]["distribution_matching_weight"] = weight
+    return s
+
+
+def test_a_distillation_with_distribution_matching_trains_another_student_that_samples(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    shutil.copytree(root / "student_work", tmp_path / "work")  # the finished distillation without it
+    summary = train_generator(_matching(settings), index, prompts, tmp_path / "work", tmp_path / "student.pt",
+                              seed=3, teacher=root / "model.pt")
+    assert summary["resumed_from"] == 0  # another loss is another distillation: it starts afresh
+    plain, matched = _state(root / "student.pt"), _state(tmp_path / "student.pt")
+    assert plain.keys() == matched.keys()  # the student ships without its fake score
+    assert not all(torch.equal(plain[k], matched[k]) for k in plain)
+    state = torch.load(sorted((tmp_path / "work").rglob("iter_*.pth"), key=lambda p: int(p.stem.split("_")[1]))[-1],
+                       map_location="cpu", weights_only=False)
+    trained = _state(root / "model.pt")
+    fake = {k.removeprefix("critic."): v for k, v in state["state_dict"].items() if k.startswith("critic.")}
+    assert fake.keys() == trained.keys()  # the fake score is the trained generator's network, in the state
+    assert not all(torch.equal(fake[k], trained[k]) for k in trained)  # and it learnt the student's scans
+    (student_group,), (fake_group,) = (state["optimizer"][k]["param_groups"] for k in ("denoiser", "critic"))
+    assert student_group["lr"] == settings["distillation"]["lr"]
+    assert fake_group["lr"] == settings["distillation"]["critic_lr"] and fake_group["betas"] == (0.0, 0.99)
+    log = "\n".join(p.read_text() for p in (tmp_path / "work").rglob("*.log"))
+    assert "loss_matching" in log and "loss_critic" in log
+    den, payload = load_generator(tmp_path / "student.pt")
+    assert payload["config"]["distillation"]["distribution_matching_weight"] == 0.5
+    shape = tuple(settings["range_image"][k] for k in ("height", "width"))
+    assert torch.isfinite(generate(den, 0, *_first_prompt(prompts), [1], shape, "ddim", 1)).all()
+
+
+def test_an_interrupted_distillation_with_distribution_matching_resumes_to_the_same_student(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    matched = _matching(settings)
+    train_generator(matched, index, prompts, tmp_path / "whole", tmp_path / "whole.pt", seed=3,
+                    teacher=root / "model.pt")
+    train_generator(matched, index, prompts, tmp_path / "work", tmp_path / "seg.json", seed=3, until=3,
+                    teacher=root / "model.pt")  # inside the last round: student and fake score both mid-way
+    resumed = train_generator(matched, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                              teacher=root / "model.pt")
+    assert resumed["resumed_from"] == 3
+    a, b = _state(tmp_path / "whole.pt"), _state(tmp_path / "student.pt")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"method": "consistency"}, "distribution_matching_weight.*progressive"),
+    ({"adversarial_weight": 0.5}, "set one of them"),
+])
+def test_distribution_matching_that_cannot_run_is_one_clear_error(teacher, tmp_path, change, message):
+    root, settings, index, prompts, _ = teacher
+    s = _matching(settings)
+    s["distillation"].update(change)
+    with pytest.raises(InputError, match=message):
+        train_generator(s, index, prompts, tmp_path / "work", tmp_path / "s.pt", seed=3, teacher=root / "model.pt")
+    assert not (tmp_path / "s.pt").exists()
