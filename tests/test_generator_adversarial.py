@@ -71,42 +71,59 @@ def _adversarial(settings, weight=0.5):
     return s
 
 
-def test_a_distillation_with_a_critic_trains_another_student_that_samples(teacher, tmp_path):
-    root, settings, index, prompts, _ = teacher
-    shutil.copytree(root / "student_work", tmp_path / "work")  # the finished distillation without a critic
-    summary = train_generator(_adversarial(settings), index, prompts, tmp_path / "work", tmp_path / "student.pt",
+def distil_with_a_second_network(teacher, settings, tmp_path, losses):
+    """A real tiny distillation with a last-round term over the finished plain one (in the
+    teacher fixture's work dir): it starts afresh, ships a student without the second network,
+    keeps that network and its own optimizer in the state, logs ``losses`` and samples. Returns
+    (the last checkpoint, the student's loaded payload)."""
+    root, _, index, prompts, _ = teacher
+    shutil.copytree(root / "student_work", tmp_path / "work")  # the finished distillation without it
+    summary = train_generator(settings, index, prompts, tmp_path / "work", tmp_path / "student.pt",
                               seed=3, teacher=root / "model.pt")
     assert summary["resumed_from"] == 0  # another loss is another distillation: it starts afresh
-    plain, adversarial = _state(root / "student.pt"), _state(tmp_path / "student.pt")
-    assert plain.keys() == adversarial.keys()  # the student ships without its critic
-    assert not all(torch.equal(plain[k], adversarial[k]) for k in plain)
+    plain, other = _state(root / "student.pt"), _state(tmp_path / "student.pt")
+    assert plain.keys() == other.keys()  # the student ships without the second network
+    assert not all(torch.equal(plain[k], other[k]) for k in plain)
     state = _last_checkpoint(tmp_path / "work")
     assert any(k.startswith("critic.") for k in state["state_dict"])  # the state keeps it to resume
-    # Two optimizers: the student's as without a critic, the critic's its own (rate, GAN betas).
+    # Two optimizers: the student's as without a second network, that network's its own (rate, GAN betas).
     (student_group,), (critic_group,) = (state["optimizer"][k]["param_groups"] for k in ("denoiser", "critic"))
     assert student_group["lr"] == settings["distillation"]["lr"]
     assert critic_group["lr"] == settings["distillation"]["critic_lr"] and critic_group["betas"] == (0.0, 0.99)
     log = "\n".join(p.read_text() for p in (tmp_path / "work").rglob("*.log"))
-    assert "loss_critic" in log and "loss_fooling" in log
+    assert all(loss in log for loss in losses)
     den, payload = load_generator(tmp_path / "student.pt")
-    assert len(student_group["params"]) == len(list(den.parameters()))
-    assert payload["config"]["distillation"]["adversarial_weight"] == 0.5 and payload["student"]["steps"] == 1
+    assert len(student_group["params"]) == len(list(den.parameters())) and payload["student"]["steps"] == 1
     shape = tuple(settings["range_image"][k] for k in ("height", "width"))
     assert torch.isfinite(generate(den, 0, *_first_prompt(prompts), [1], shape, "ddim", 1)).all()
+    return state, payload
 
 
-def test_an_interrupted_distillation_with_a_critic_resumes_to_the_same_student(teacher, tmp_path):
-    root, settings, index, prompts, _ = teacher
-    adversarial = _adversarial(settings)
-    train_generator(adversarial, index, prompts, tmp_path / "whole", tmp_path / "whole.pt", seed=3,
+def resumes_inside_the_last_round(teacher, settings, tmp_path) -> dict:
+    """Distil ``settings`` whole, and again stopped inside the last round (student and second
+    network both mid-way) and resumed: the same student bit for bit. Returns its state."""
+    root, _, index, prompts, _ = teacher
+    train_generator(settings, index, prompts, tmp_path / "whole", tmp_path / "whole.pt", seed=3,
                     teacher=root / "model.pt")
-    train_generator(adversarial, index, prompts, tmp_path / "work", tmp_path / "seg.json", seed=3, until=3,
-                    teacher=root / "model.pt")  # inside the last round: student and critic both mid-way
-    resumed = train_generator(adversarial, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+    train_generator(settings, index, prompts, tmp_path / "work", tmp_path / "seg.json", seed=3, until=3,
+                    teacher=root / "model.pt")
+    resumed = train_generator(settings, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
                               teacher=root / "model.pt")
     assert resumed["resumed_from"] == 3
     a, b = _state(tmp_path / "whole.pt"), _state(tmp_path / "student.pt")
     assert all(torch.equal(a[k], b[k]) for k in a)
+    return a
+
+
+def test_a_distillation_with_a_critic_trains_another_student_that_samples(teacher, tmp_path):
+    _, payload = distil_with_a_second_network(teacher, _adversarial(teacher[1]), tmp_path,
+                                              ("loss_critic", "loss_fooling"))
+    assert payload["config"]["distillation"]["adversarial_weight"] == 0.5
+
+
+def test_an_interrupted_distillation_with_a_critic_resumes_to_the_same_student(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    a = resumes_inside_the_last_round(teacher, _adversarial(settings), tmp_path)
     # Another weight is another distillation: the finished state is not reused.
     other = train_generator(_adversarial(settings, 0.25), index, prompts, tmp_path / "work", tmp_path / "w.pt",
                             seed=3, teacher=root / "model.pt")

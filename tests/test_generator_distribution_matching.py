@@ -5,19 +5,17 @@ provenance, errors)."""
 from __future__ import annotations
 
 import copy
-import shutil
 
 import pytest
 import torch
 
 from omnilidar.errors import InputError
-from omnilidar.generator.checkpoint import load_generator
-from omnilidar.generator.diffusion import generate
 from omnilidar.generator.distribution_matching import (build_fake_score, fake_score_loss, matching_direction,
                                                        matching_loss)
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
 from omnilidar.generator.training import train_generator
-from test_generator_distill import _first_prompt, _state, teacher  # noqa: F401
+from test_generator_adversarial import distil_with_a_second_network, resumes_inside_the_last_round
+from test_generator_distill import _state, teacher  # noqa: F401
 from test_generator_fixtures import one_torch_thread  # noqa: F401
 
 SCHEDULE = CosineLogSNRSchedule(-15.0, 15.0)
@@ -90,43 +88,17 @@ def _matching(settings, weight=0.5):
 
 
 def test_a_distillation_with_distribution_matching_trains_another_student_that_samples(teacher, tmp_path):
-    root, settings, index, prompts, _ = teacher
-    shutil.copytree(root / "student_work", tmp_path / "work")  # the finished distillation without it
-    summary = train_generator(_matching(settings), index, prompts, tmp_path / "work", tmp_path / "student.pt",
-                              seed=3, teacher=root / "model.pt")
-    assert summary["resumed_from"] == 0  # another loss is another distillation: it starts afresh
-    plain, matched = _state(root / "student.pt"), _state(tmp_path / "student.pt")
-    assert plain.keys() == matched.keys()  # the student ships without its fake score
-    assert not all(torch.equal(plain[k], matched[k]) for k in plain)
-    state = torch.load(sorted((tmp_path / "work").rglob("iter_*.pth"), key=lambda p: int(p.stem.split("_")[1]))[-1],
-                       map_location="cpu", weights_only=False)
-    trained = _state(root / "model.pt")
+    state, payload = distil_with_a_second_network(teacher, _matching(teacher[1]), tmp_path,
+                                                  ("loss_critic", "loss_matching"))
+    trained = _state(teacher[0] / "model.pt")
     fake = {k.removeprefix("critic."): v for k, v in state["state_dict"].items() if k.startswith("critic.")}
     assert fake.keys() == trained.keys()  # the fake score is the trained generator's network, in the state
     assert not all(torch.equal(fake[k], trained[k]) for k in trained)  # and it learnt the student's scans
-    (student_group,), (fake_group,) = (state["optimizer"][k]["param_groups"] for k in ("denoiser", "critic"))
-    assert student_group["lr"] == settings["distillation"]["lr"]
-    assert fake_group["lr"] == settings["distillation"]["critic_lr"] and fake_group["betas"] == (0.0, 0.99)
-    log = "\n".join(p.read_text() for p in (tmp_path / "work").rglob("*.log"))
-    assert "loss_matching" in log and "loss_critic" in log
-    den, payload = load_generator(tmp_path / "student.pt")
     assert payload["config"]["distillation"]["distribution_matching_weight"] == 0.5
-    shape = tuple(settings["range_image"][k] for k in ("height", "width"))
-    assert torch.isfinite(generate(den, 0, *_first_prompt(prompts), [1], shape, "ddim", 1)).all()
 
 
 def test_an_interrupted_distillation_with_distribution_matching_resumes_to_the_same_student(teacher, tmp_path):
-    root, settings, index, prompts, _ = teacher
-    matched = _matching(settings)
-    train_generator(matched, index, prompts, tmp_path / "whole", tmp_path / "whole.pt", seed=3,
-                    teacher=root / "model.pt")
-    train_generator(matched, index, prompts, tmp_path / "work", tmp_path / "seg.json", seed=3, until=3,
-                    teacher=root / "model.pt")  # inside the last round: student and fake score both mid-way
-    resumed = train_generator(matched, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
-                              teacher=root / "model.pt")
-    assert resumed["resumed_from"] == 3
-    a, b = _state(tmp_path / "whole.pt"), _state(tmp_path / "student.pt")
-    assert all(torch.equal(a[k], b[k]) for k in a)
+    resumes_inside_the_last_round(teacher, _matching(teacher[1]), tmp_path)
 
 
 @pytest.mark.parametrize("change, message", [
