@@ -358,5 +358,5 @@ def test_a_distillation_with_a_last_round_term_asks_for_its_extra_steps(workdir,
         overlay.write_text("generator: {sampling: {student: true}, distillation: {%s: %s}}\n" % (term, weight))
         runtimes[weight] = int(_dry_run_resources(workdir, *PAPER, str(overlay), *target)["distill_generator"]["runtime"])
     # The last of the rounds trains a second network too (a critic at 1.35 of a step, a fake score
-    # at 2): more, but less than its last round's share of the whole could add.
+    # at 2.3): more, but less than its last round's share of the whole could add.
     assert runtimes[0] < runtimes[0.5] < runtimes[0] * most

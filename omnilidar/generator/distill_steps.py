@@ -54,7 +54,7 @@ def round_iterations(distillation: dict) -> list[int]:
 # the pruned 1-step student on 2 CPUs, docs/results.md): the patch critic adds its own small
 # network's passes; distribution matching two passes of the trained generator and the fake
 # score's forward and backward.
-LAST_ROUND_STEP_COST = {"adversarial_weight": 1.35, "distribution_matching_weight": 2.0}
+LAST_ROUND_STEP_COST = {"adversarial_weight": 1.35, "distribution_matching_weight": 2.3}
 
 
 def last_round_extra_steps(distillation: dict) -> float:
