@@ -59,9 +59,11 @@ LAST_ROUND_STEP_COST = {"adversarial_weight": 1.35, "distribution_matching_weigh
 
 def last_round_extra_steps(distillation: dict) -> float:
     """What a last-round term's second network (a critic or a fake score, where its weight is
-    > 0) adds to the distillation, in optimizer steps without one."""
+    > 0, updated ``critic_updates`` times a step) adds to the distillation, in optimizer steps
+    without one."""
     last = round_iterations(distillation)[-1]
-    return sum(last * (cost - 1) for key, cost in LAST_ROUND_STEP_COST.items()
+    updates = int(distillation.get("critic_updates") or 1)
+    return sum(last * (cost - 1) * updates for key, cost in LAST_ROUND_STEP_COST.items()
                if float(distillation.get(key) or 0) > 0)
 
 

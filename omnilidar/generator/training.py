@@ -134,15 +134,19 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             return self
 
         def train_step(self, data, optim_wrapper):
-            """With a critic (two optimizers), the student steps on its losses and the critic on its own."""
+            """With a critic (two optimizers), the student steps on its losses, then the critic
+            ``critic_updates`` times on its own, each time on its loss drawn afresh on the
+            student's scans of this step (the two time-scale update rule of DMD2)."""
             if self.critic is None:
                 return super().train_step(data, optim_wrapper)
             losses = self._run_forward(self.data_preprocessor(data, True), mode="loss")
-            critic_term = losses.pop("loss_critic", None)  # the last round's only
+            critic_loss_of = losses.pop("loss_critic", None)  # the last round's only
             student_loss, log_vars = self.parse_losses(losses)
             optim_wrapper["denoiser"].update_params(student_loss)
-            if critic_term is not None:
-                optim_wrapper["critic"].update_params(critic_term)
+            if critic_loss_of is not None:
+                for _ in range(int(settings["distillation"]["critic_updates"])):
+                    critic_term = critic_loss_of()
+                    optim_wrapper["critic"].update_params(critic_term)
                 log_vars["loss_critic"] = critic_term.detach()
             return log_vars
 
@@ -184,16 +188,18 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                                                             round_steps(dist, round_index), gen,
                                                             crop_width=self.crop_width, spacing=dist["spacing"])
             loss = weighted_x0_error(x0, l_t, target, dist["huber_c"])
+            # The second network's loss is returned uncomputed: train_step draws it per update.
+            scans = x0.detach()
             if float(dist["adversarial_weight"]) > 0:  # a critic against the training scans
                 return {"loss": loss,
                         "loss_fooling": fooling_loss(self.critic, x0, domain, loss, float(dist["adversarial_weight"])),
-                        "loss_critic": critic_loss(self.critic, real, x0.clamp(-1.0, 1.0), domain)}
+                        "loss_critic": lambda: critic_loss(self.critic, real, scans.clamp(-1.0, 1.0), domain)}
             # a fake score of the student's scans against the trained generator's
             matching = matching_loss(self.teacher, self.critic, x0, domain, tokens, mask, self.schedule, gen, loss,
                                      float(dist["distribution_matching_weight"]), extra)
-            fake = fake_score_loss(self.critic, x0, domain, tokens, mask, self.schedule, self.gamma, gen,
-                                   self.weighting, extra)
-            return {"loss": loss, "loss_matching": matching, "loss_critic": fake}
+            return {"loss": loss, "loss_matching": matching,
+                    "loss_critic": lambda: fake_score_loss(self.critic, scans, domain, tokens, mask, self.schedule,
+                                                           self.gamma, gen, self.weighting, extra)}
 
     return DiffusionModel()
 
