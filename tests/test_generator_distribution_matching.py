@@ -112,3 +112,19 @@ def test_distribution_matching_that_cannot_run_is_one_clear_error(teacher, tmp_p
     with pytest.raises(InputError, match=message):
         train_generator(s, index, prompts, tmp_path / "work", tmp_path / "s.pt", seed=3, teacher=root / "model.pt")
     assert not (tmp_path / "s.pt").exists()
+
+
+def test_the_fake_score_steps_critic_updates_times_per_student_step(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    steps = {}
+    for updates in (1, 2):
+        s = _matching(settings)
+        s["distillation"]["critic_updates"] = updates
+        work = tmp_path / f"u{updates}"
+        train_generator(s, index, prompts, work, work / "student.pt", seed=3, teacher=root / "model.pt")
+        state = torch.load(sorted(work.rglob("iter_*.pth"), key=lambda p: int(p.stem.split("_")[1]))[-1],
+                           map_location="cpu", weights_only=False)["optimizer"]
+        steps[updates] = {k: int(next(iter(state[k]["state"].values()))["step"]) for k in ("denoiser", "critic")}
+    last_round = settings["distillation"]["iterations_per_round"]
+    assert steps[1]["critic"] == last_round and steps[2]["critic"] == 2 * last_round
+    assert steps[1]["denoiser"] == steps[2]["denoiser"]  # the student steps as often either way
