@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from omnilidar.errors import InputError
+from omnilidar.generator.distill_steps import LAST_ROUND_STEP_COST, last_round_extra_steps
 from omnilidar.generator.distribution_matching import (build_fake_score, fake_score_loss, matching_direction,
                                                        matching_loss)
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
@@ -128,3 +129,11 @@ def test_the_fake_score_steps_critic_updates_times_per_student_step(teacher, tmp
     last_round = settings["distillation"]["iterations_per_round"]
     assert steps[1]["critic"] == last_round and steps[2]["critic"] == 2 * last_round
     assert steps[1]["denoiser"] == steps[2]["denoiser"]  # the student steps as often either way
+
+
+def test_the_last_round_s_second_network_is_counted_per_update_in_the_runtime_estimate():
+    d = {"rounds": 3, "iterations_per_round": 4, "final_round_iterations": 10, "distribution_matching_weight": 1.0}
+    first, each = LAST_ROUND_STEP_COST["distribution_matching_weight"]
+    assert last_round_extra_steps(d) == pytest.approx(10 * (first - 1))  # the last round only, one update
+    assert last_round_extra_steps({**d, "critic_updates": 3}) == pytest.approx(10 * (first - 1 + 2 * each))
+    assert last_round_extra_steps({**d, "distribution_matching_weight": 0}) == 0

@@ -9,9 +9,9 @@ the student's scans towards the trained generator's own distribution, the one th
 match: a noised copy of each student scan is denoised twice, by the trained generator (the score
 of its scans) and by a "fake score" network that keeps learning the student's current scans with
 the generator's own denoising loss. Where the two x0 estimates differ, the student's scan lies
-where the student puts more mass than its teacher; the difference, normalised per scan by the
-scan's mean distance to the teacher's estimate, is the gradient of the KL divergence between the
-two distributions, and the student follows it.
+where the student puts more mass than its teacher; the difference estimates the gradient of the
+KL divergence from the teacher's distribution to the student's, and the student descends it,
+normalised per scan by the scan's mean distance to the teacher's estimate.
 
 The fake score starts as a copy of the trained generator (so the term starts at 0) and trains
 beside the student with an optimizer of its own. The term's weight is relative, as the critic's:
