@@ -118,11 +118,13 @@ def test_distribution_matching_that_cannot_run_is_one_clear_error(teacher, tmp_p
 def test_the_fake_score_steps_critic_updates_times_per_student_step(teacher, tmp_path):
     root, settings, index, prompts, _ = teacher
     steps = {}
+    work = tmp_path / "work"  # one work dir: another critic_updates over a finished state starts afresh
     for updates in (1, 2):
         s = _matching(settings)
         s["distillation"]["critic_updates"] = updates
-        work = tmp_path / f"u{updates}"
-        train_generator(s, index, prompts, work, work / "student.pt", seed=3, teacher=root / "model.pt")
+        summary = train_generator(s, index, prompts, work, tmp_path / f"u{updates}.pt", seed=3,
+                                  teacher=root / "model.pt")
+        assert summary["resumed_from"] == 0
         state = torch.load(sorted(work.rglob("iter_*.pth"), key=lambda p: int(p.stem.split("_")[1]))[-1],
                            map_location="cpu", weights_only=False)["optimizer"]
         steps[updates] = {k: int(next(iter(state[k]["state"].values()))["step"]) for k in ("denoiser", "critic")}

@@ -59,14 +59,19 @@ def round_iterations(distillation: dict) -> list[int]:
 LAST_ROUND_STEP_COST = {"adversarial_weight": (1.35, 0.35), "distribution_matching_weight": (2.3, 0.7)}
 
 
+def last_round_terms(distillation: dict) -> list[str]:
+    """The last-round terms switched on (their weight > 0), each training a second network:
+    ``adversarial_weight`` (a critic) and ``distribution_matching_weight`` (a fake score)."""
+    return [key for key in LAST_ROUND_STEP_COST if float(distillation.get(key) or 0) > 0]
+
+
 def last_round_extra_steps(distillation: dict) -> float:
-    """What a last-round term's second network (a critic or a fake score, where its weight is
-    > 0, updated ``critic_updates`` times a step) adds to the distillation, in optimizer steps
-    without one."""
+    """What a last-round term's second network (updated ``critic_updates`` times a step) adds to
+    the distillation, in optimizer steps without one."""
     last = round_iterations(distillation)[-1]
     more = int(distillation.get("critic_updates") or 1) - 1
-    return sum(last * (first - 1 + more * each) for key, (first, each) in LAST_ROUND_STEP_COST.items()
-               if float(distillation.get(key) or 0) > 0)
+    return sum(last * (LAST_ROUND_STEP_COST[key][0] - 1 + more * LAST_ROUND_STEP_COST[key][1])
+               for key in last_round_terms(distillation))
 
 
 def round_at(distillation: dict, step: int) -> int:

@@ -48,7 +48,8 @@ from omnilidar.generator.distill import (compression_loss, consistency_loss, dis
                                          weighted_x0_error)
 from omnilidar.generator.distribution_matching import build_fake_score, fake_score_loss, matching_loss
 from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
-                                               round_iterations, round_steps, starts_from_teacher, student_model,
+                                               last_round_terms, round_iterations, round_steps, starts_from_teacher,
+                                               student_model,
                                                student_sampler, student_steps)
 from omnilidar.generator.return_decision import calibrate_returns
 from omnilidar.generator.schedule import CosineLogSNRSchedule
@@ -135,8 +136,9 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
 
         def train_step(self, data, optim_wrapper):
             """With a critic (two optimizers), the student steps on its losses, then the critic
-            ``critic_updates`` times on its own, each time on its loss drawn afresh on the
-            student's scans of this step (the two time-scale update rule of DMD2)."""
+            ``critic_updates`` times on its own, each time on its loss computed again on the
+            student's scans of this step (a fake score's with fresh noise; the two time-scale
+            update rule of DMD2)."""
             if self.critic is None:
                 return super().train_step(data, optim_wrapper)
             losses = self._run_forward(self.data_preprocessor(data, True), mode="loss")
@@ -190,7 +192,7 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
             loss = weighted_x0_error(x0, l_t, target, dist["huber_c"])
             # The second network's loss is returned uncomputed: train_step draws it per update.
             scans = x0.detach()
-            if float(dist["adversarial_weight"]) > 0:  # a critic against the training scans
+            if last_round_terms(dist) == ["adversarial_weight"]:  # a critic against the training scans
                 return {"loss": loss,
                         "loss_fooling": fooling_loss(self.critic, x0, domain, loss, float(dist["adversarial_weight"])),
                         "loss_critic": lambda: critic_loss(self.critic, real, scans.clamp(-1.0, 1.0), domain)}
@@ -335,7 +337,7 @@ def check_last_round_terms(dist: dict | None) -> None:
     both at once, with consistency distillation (no last round), or on several processes."""
     if dist is None:
         return
-    terms = [k for k in ("adversarial_weight", "distribution_matching_weight") if float(dist[k]) > 0]
+    terms = last_round_terms(dist)
     if len(terms) > 1:
         raise InputError(None, "generator.distillation: adversarial_weight and distribution_matching_weight each "
                                "train a second network in the last round; set one of them")
@@ -450,10 +452,10 @@ def train_generator(
     # (omnilidar.generator.schedule.BF16_MIN_LOGSNR; the students distilled in bf16 learnt from it).
     bf16 = bool(tr["bf16"]) and dist is None
     cpu_bf16 = bf16 and not cuda and cpu_has_native_bf16()
-    critic = None
-    if dist is not None and float(dist["adversarial_weight"]) > 0:
+    critic = None  # the last round's second network, where a term needs one
+    if dist is not None and last_round_terms(dist) == ["adversarial_weight"]:
         critic = build_critic(denoiser.cfg.in_channels, len(names), int(rng_for(seed, 0xC217).integers(2**63 - 1)))
-    if dist is not None and float(dist["distribution_matching_weight"]) > 0:
+    elif dist is not None and last_round_terms(dist) == ["distribution_matching_weight"]:
         critic = build_fake_score(frozen)
     model = make_diffusion_model(denoiser, settings, tokens, mask, seed, teacher=frozen, cpu_bf16=cpu_bf16,
                                  critic=critic)
