@@ -254,12 +254,14 @@ _RULES = {
     # A distillation step runs the teacher twice (forward only) beside the student's forward and
     # backward: about 5 forward passes against a training step's 3. The return calibration then
     # samples its scans of every domain with the teacher's and the student's steps. A last round
-    # with a critic or distribution matching costs more per step (LAST_ROUND_STEP_COST).
+    # with a critic or distribution matching costs more per step (LAST_ROUND_STEP_COST), and so do
+    # the trained generator's substeps (teacher_substep_extra_steps).
     "distill_generator": (_GEN_TRAIN["device"], _generator_train_work(),
                           _runtime(_train_seconds(distillation_iterations(config["generator"])
-                                                  + last_round_extra_steps(_DISTILL)) * 5 / 3
+                                                  + last_round_extra_steps(_DISTILL)
+                                                  + teacher_substep_extra_steps(_DISTILL)) * 5 / 3
                                    + sampling_seconds(len(DOMAIN_NAMES) * _DISTILL["return_calibration"],
-                                                      _DISTILL["teacher_steps"] + STUDENT_STEPS)),
+                                                      teacher_sampler_steps(_DISTILL) + STUDENT_STEPS)),
                           _GEN_TRAIN["num_workers"] + 1),
     "sample_domain": (config["generator"]["sampling"]["device"],
                       _generator_sample_work(config["generator"]["sampling"]["batch_size"]),

@@ -360,3 +360,14 @@ def test_a_distillation_with_a_last_round_term_asks_for_its_extra_steps(workdir,
     # The last of the rounds trains a second network too (a critic at 1.35 of a step, a fake score
     # at 2.3): more, but less than its last round's share of the whole could add.
     assert runtimes[0] < runtimes[0.5] < runtimes[0] * most
+
+
+def test_a_distillation_whose_teacher_takes_substeps_asks_for_its_first_round_s_passes(workdir, tmp_path):
+    target = ("--", "data/samples/Vehicle/shard_0")
+    runtimes = {}
+    for substeps in (1, 4):
+        overlay = tmp_path / f"substeps{substeps}.yaml"
+        overlay.write_text("generator: {sampling: {student: true}, distillation: {teacher_substeps: %d}}\n" % substeps)
+        runtimes[substeps] = int(_dry_run_resources(workdir, *PAPER, str(overlay), *target)["distill_generator"]["runtime"])
+    # The paper's first round of six (10k steps each) runs 2 x 3 more teacher passes a step of 5: +20 %.
+    assert runtimes[4] / runtimes[1] == pytest.approx(1.2, abs=0.01)

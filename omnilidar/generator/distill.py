@@ -84,13 +84,24 @@ def _draw(image: torch.Tensor, steps: int, generator: torch.Generator, crop_widt
 
 
 def _grid_logsnr(schedule: CosineLogSNRSchedule, steps: int, spacing: str, index: torch.Tensor,
-                 halves: tuple[int, ...]) -> list[torch.Tensor]:
+                 points, parts: int = 2) -> list[torch.Tensor]:
     """logSNR at step ``index`` (1..steps, counted from the data end) of a ``steps``-step DDIM grid of
-    ``spacing`` (:func:`omnilidar.generator.samplers.time_grid`), moved on by each of ``halves`` half
-    steps towards the data: (0,) is the step's start, (0, 1, 2) its start, midpoint and end."""
-    grid = time_grid(schedule, 2 * steps, spacing).to(index.device)
-    start = 2 * (steps - index)
-    return [schedule.logsnr(grid[start + h]) for h in halves]
+    ``spacing`` (:func:`omnilidar.generator.samplers.time_grid`), moved on by each of ``points``
+    ``1 / parts`` steps towards the data: with ``parts`` 2, (0,) is the step's start, (0, 1, 2) its
+    start, midpoint and end. The finer grid holds the coarse one's times (every spacing is a
+    uniform ramp in t, logSNR or sigma^(1/rho))."""
+    grid = time_grid(schedule, parts * steps, spacing).to(index.device)
+    start = parts * (steps - index)
+    return [schedule.logsnr(grid[start + h]) for h in points]
+
+
+def teacher_walk(teacher: torch.nn.Module, z: torch.Tensor, logsnrs: list[torch.Tensor], domain: torch.Tensor,
+                 tokens: torch.Tensor, mask: torch.Tensor, extra: dict) -> torch.Tensor:
+    """The teacher's deterministic DDIM steps from ``z`` at ``logsnrs[0]`` through each later logSNR
+    (per scan): where it lands at the last one."""
+    for l_from, l_to in zip(logsnrs[:-1], logsnrs[1:]):
+        z = ddim_move(predict_x0(z, teacher(z, l_from, domain, tokens, mask, **extra), l_from), z, l_from, l_to)
+    return z
 
 
 def _noised(image: torch.Tensor, eps: torch.Tensor, logsnr: torch.Tensor) -> torch.Tensor:
@@ -137,22 +148,23 @@ def _weighted_x0_error(student_out: torch.Tensor, z_t: torch.Tensor, logsnr: tor
 
 def progressive_pair(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
-                     generator: torch.Generator, crop_width: int | None = None, spacing: str = "uniform"):
+                     generator: torch.Generator, crop_width: int | None = None, spacing: str = "uniform",
+                     substeps: int = 1):
     """One draw of progressive distillation: (the training scans, windowed where training crops,
     the denoiser's extra arguments for those windows, the ``steps``-step student's unclamped x0 at
     a grid time t, the x0 with which its one DDIM step lands where two teacher steps do, logSNR at t).
+    With ``substeps`` k the teacher takes each of its two steps in k DDIM steps of a k times finer
+    grid: the student learns a more exact path of the teacher's ODE at 2k teacher evaluations.
 
     Noise, times and azimuth windows come from ``generator`` in the order of
     :func:`omnilidar.generator.diffusion.epsilon_loss` (windows, time, noise)."""
     image, extra, index, eps = _draw(image, steps, generator, crop_width)
-    l_t, l_mid, l_end = _grid_logsnr(schedule, steps, spacing, index, (0, 1, 2))
-    z_t = _noised(image, eps, l_t)
-    l_t, l_mid, l_end = l_t.float(), l_mid.float(), l_end.float()
+    grid = _grid_logsnr(schedule, steps, spacing, index, range(2 * substeps + 1), 2 * substeps)
+    z_t = _noised(image, eps, grid[0])
+    logsnrs = [l.float() for l in grid]
+    l_t, l_end = logsnrs[0], logsnrs[-1]
     with torch.no_grad():
-        z_mid = ddim_move(predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra), l_t), z_t, l_t, l_mid)
-        z_end = ddim_move(predict_x0(z_mid, teacher(z_mid, l_mid, domain, tokens, mask, **extra), l_mid),
-                          z_mid, l_mid, l_end)
-        target = two_step_target(z_t, z_end, l_t, l_end)
+        target = two_step_target(z_t, teacher_walk(teacher, z_t, logsnrs, domain, tokens, mask, extra), l_t, l_end)
     x0 = predict_x0(z_t, student(z_t, l_t, domain, tokens, mask, **extra).float(), l_t, clamp=False)
     return image, extra, x0, target, l_t
 
@@ -160,11 +172,11 @@ def progressive_pair(student: torch.nn.Module, teacher: torch.nn.Module, image: 
 def distillation_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                       tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, steps: int,
                       generator: torch.Generator, crop_width: int | None = None,
-                      spacing: str = "uniform", huber_c: float | None = None) -> torch.Tensor:
+                      spacing: str = "uniform", huber_c: float | None = None, substeps: int = 1) -> torch.Tensor:
     """Truncated-SNR weighted x0 error of the ``steps``-step student against two teacher steps
     (drawn as :func:`progressive_pair` draws)."""
     _, _, x0, target, l_t = progressive_pair(student, teacher, image, domain, tokens, mask, schedule, steps, generator,
-                                          crop_width, spacing)
+                                          crop_width, spacing, substeps)
     return weighted_x0_error(x0, l_t, target, huber_c)
 
 
@@ -188,18 +200,20 @@ def compression_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: 
 def consistency_loss(student: torch.nn.Module, teacher: torch.nn.Module, image: torch.Tensor, domain: torch.Tensor,
                      tokens: torch.Tensor, mask: torch.Tensor, schedule: CosineLogSNRSchedule, grid: int,
                      generator: torch.Generator, crop_width: int | None = None,
-                     spacing: str = "uniform", huber_c: float | None = None) -> torch.Tensor:
+                     spacing: str = "uniform", huber_c: float | None = None, substeps: int = 1) -> torch.Tensor:
     """Truncated-SNR weighted error between the student's x0 at t and its own x0 (no gradient) one
-    teacher DDIM step later on a ``grid``-step grid; at s = 0 the target is the teacher's landing.
+    teacher DDIM step later on a ``grid``-step grid (taken in ``substeps`` DDIM steps of a finer
+    grid); at s = 0 the target is the teacher's landing.
 
     Noise, times and azimuth windows come from ``generator`` in the order of
     :func:`distillation_loss` (windows, time, noise)."""
     image, extra, index, eps = _draw(image, grid, generator, crop_width)
-    l_t, l_s = _grid_logsnr(schedule, grid, spacing, index, (0, 2))
-    z_t = _noised(image, eps, l_t)
-    l_t, l_s = l_t.float(), l_s.float()
+    times = _grid_logsnr(schedule, grid, spacing, index, range(0, 2 * substeps + 1, 2), 2 * substeps)
+    z_t = _noised(image, eps, times[0])
+    logsnrs = [l.float() for l in times]
+    l_t, l_s = logsnrs[0], logsnrs[-1]
     with torch.no_grad():
-        z_s = ddim_move(predict_x0(z_t, teacher(z_t, l_t, domain, tokens, mask, **extra), l_t), z_t, l_t, l_s)
+        z_s = teacher_walk(teacher, z_t, logsnrs, domain, tokens, mask, extra)
         target = predict_x0(z_s, student(z_s, l_s, domain, tokens, mask, **extra).float(), l_s)
         target = torch.where(_per_scan(index == 1), z_s.clamp(-1.0, 1.0), target)  # f(z, 0) = z
     return _weighted_x0_error(student(z_t, l_t, domain, tokens, mask, **extra), z_t, l_t, target, huber_c)

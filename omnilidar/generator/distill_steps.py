@@ -74,6 +74,24 @@ def last_round_extra_steps(distillation: dict) -> float:
                for key in last_round_terms(distillation))
 
 
+def teacher_sampler_steps(distillation: dict) -> int:
+    """DDIM steps of the trained generator's sampler that the student learns: ``teacher_steps``,
+    each taken in ``teacher_substeps`` steps of a finer grid."""
+    return int(distillation["teacher_steps"]) * int(distillation.get("teacher_substeps") or 1)
+
+
+def teacher_substep_extra_steps(distillation: dict) -> float:
+    """What the trained generator's further substeps add to the distillation, in its optimizer
+    steps: a step runs about 5 forward passes (the teacher's two, the student's forward and
+    backward), and each further substep one more teacher pass, twice per step of progressive
+    distillation's first round (the only round the trained generator teaches), once per step of
+    consistency distillation's."""
+    more = int(distillation.get("teacher_substeps") or 1) - 1
+    if distillation["method"] == "consistency":
+        return sum(round_iterations(distillation)) * more / 5
+    return round_iterations(distillation)[0] * 2 * more / 5
+
+
 def round_at(distillation: dict, step: int) -> int:
     """The round (0-based) that optimizer step ``step`` of the rounds (counted after compression)
     belongs to; steps past the last round count as the last round."""

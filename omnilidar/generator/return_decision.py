@@ -24,7 +24,7 @@ import torch
 
 from omnilidar.generator.data import rng_for
 from omnilidar.generator.diffusion import generate
-from omnilidar.generator.distill_steps import student_sampler, student_steps
+from omnilidar.generator.distill_steps import student_sampler, student_steps, teacher_sampler_steps
 
 CALIBRATION_STREAM = 0xCA1B
 
@@ -54,7 +54,7 @@ def row_thresholds(student_range: np.ndarray, student_returns: np.ndarray, teach
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
                       seed: int, batch: int = 8, log=print) -> torch.Tensor:
     """(domains, H) float32 thresholds of ``student`` against ``teacher`` (the trained generator
-    with DDIM x ``teacher_steps`` on the distillation's spacing) on ``return_calibration`` seeded
+    with DDIM x ``teacher_steps`` x ``teacher_substeps`` on the distillation's spacing) on ``return_calibration`` seeded
     scans per domain; ``payload``: the student's checkpoint contents (its settings, domains and
     their back-projection geometry)."""
     from omnilidar.data.range_image import decode
@@ -71,7 +71,7 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
         spec, entry = domain_points_spec(settings, payload, name), prompt_cache["domains"][name]
         seeds = calibration_seeds(seed, name, scans)
         sampled = {}
-        for who, net, steps in (("teacher", teacher, int(distillation["teacher_steps"])),
+        for who, net, steps in (("teacher", teacher, teacher_sampler_steps(distillation)),
                                 ("student", student, student_steps(distillation))):
             sampled[who] = np.concatenate([
                 generate(net, index, entry["tokens"][0], entry["mask"][0], seeds[i:i + batch], spec.shape, sampler,

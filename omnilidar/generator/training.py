@@ -49,8 +49,7 @@ from omnilidar.generator.distill import (compression_loss, consistency_loss, dis
 from omnilidar.generator.distribution_matching import build_fake_score, fake_score_loss, matching_loss
 from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
                                                last_round_terms, round_iterations, round_steps, starts_from_teacher,
-                                               student_model,
-                                               student_sampler, student_steps)
+                                               student_model, student_sampler, student_steps, teacher_sampler_steps)
 from omnilidar.generator.return_decision import calibrate_returns
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
@@ -174,21 +173,26 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                 return {"loss": loss}
             if dist["method"] == "consistency":  # the trained generator teaches throughout
                 loss = consistency_loss(self.denoiser, self.teacher, *args, int(dist["teacher_steps"]), gen,
-                                        crop_width=self.crop_width, spacing=dist["spacing"], huber_c=dist["huber_c"])
+                                        crop_width=self.crop_width, spacing=dist["spacing"], huber_c=dist["huber_c"],
+                                        substeps=int(dist["teacher_substeps"]))
                 return {"loss": loss}
             round_index = round_at(dist, self.iteration - self.compression)
             if int(self.teacher_round) < round_index:  # a new round: the student becomes the teacher
                 self.round_teacher.load_state_dict(self.denoiser.state_dict())
                 self.teacher_round.fill_(round_index)
             round_teacher = self.round_teacher if round_index else self.teacher
+            # Only the trained generator takes substeps: a round's student has learnt its own grid only.
+            substeps = 1 if round_index else int(dist["teacher_substeps"])
             if self.critic is None or round_index < int(dist["rounds"]) - 1:
                 loss = distillation_loss(self.denoiser, round_teacher, *args, round_steps(dist, round_index), gen,
-                                         crop_width=self.crop_width, spacing=dist["spacing"], huber_c=dist["huber_c"])
+                                         crop_width=self.crop_width, spacing=dist["spacing"], huber_c=dist["huber_c"],
+                                         substeps=substeps)
                 return {"loss": loss}
             # The last round adds a term on the student's scans as a set, from a second network.
             real, extra, x0, target, l_t = progressive_pair(self.denoiser, round_teacher, *args,
                                                             round_steps(dist, round_index), gen,
-                                                            crop_width=self.crop_width, spacing=dist["spacing"])
+                                                            crop_width=self.crop_width, spacing=dist["spacing"],
+                                                            substeps=substeps)
             loss = weighted_x0_error(x0, l_t, target, dist["huber_c"])
             # The second network's loss is returned uncomputed: train_step draws it per update.
             scans = x0.detach()
@@ -512,7 +516,7 @@ def train_generator(
         **resumable_runner_args(resume_from, seed, tr["log_interval"]),
     )
     what = "generator" if dist is None else (
-        f"student of {teacher} ({dist['method']} distillation, {dist['teacher_steps']} -> {student_steps(dist)} "
+        f"student of {teacher} ({dist['method']} distillation, {teacher_sampler_steps(dist)} -> {student_steps(dist)} "
         f"DDIM steps, rounds of {round_iterations(dist)} iterations"
         + (f" after {compression_iterations(settings)} of compression to base_channels "
            f"{own['model']['base_channels']}, residual blocks per level {own['model']['num_res_blocks']})"
@@ -569,7 +573,8 @@ def train_generator(
         }
         if dist is not None:
             payload["student"] = {"sampler": student_sampler(dist), "steps": student_steps(dist),
-                                  "teacher": str(teacher), "teacher_steps": int(dist["teacher_steps"]), "rounds": int(dist["rounds"]),
+                                  "teacher": str(teacher), "teacher_steps": int(dist["teacher_steps"]),
+                                  "teacher_substeps": int(dist["teacher_substeps"]), "rounds": int(dist["rounds"]),
                                   "method": dist["method"], "return_calibration": int(dist["return_calibration"])}
             if int(dist["return_calibration"]):
                 payload["return_thresholds"] = calibrate_returns(final, frozen, payload, cache, seed,
