@@ -185,8 +185,28 @@ def test_sampler_tradeoff_one_run(fixture_dir):
     assert row["excess"] == pytest.approx(row["student"] - row["teacher"]) and row["held"] == (row["excess"] <= 2 * row["spread"])
     assert check["held"] == all(not check["metrics"][m]["missed"] for m in ("JSD", "MMD"))
     assert check["default_sampler"]["steps"] == 2 and check["speedup_over_default"] > 0
+    settings_check = t["teacher_settings_check"]
+    assert list(settings_check) == ["ddim x 1", "ddim x 2", "dpmpp_2m x 1", "unipc_karras x 2"]
+    best_jsd = f"{jsd['teacher_best']['sampler']} x {jsd['teacher_best']['steps']}"
+    assert settings_check[best_jsd]["JSD"] == {"held": 1, "of": 1, "missed": {}}  # the best holds itself
     assert t["effects"][0]["name"] == "fog:samples" and t["downstream"] == []  # no GDA curve given
     assert (r / "t.png").stat().st_size > 1000
+
+
+def test_every_teacher_setting_is_held_to_the_best_by_the_student_s_rule():
+    from omnilidar.commands.sampler_tradeoff import teacher_settings_check
+
+    def point(sampler, steps, jsd):
+        return {"sampler": sampler, "steps": steps, "mean_JSD": jsd, "mean_MMD": None,
+                "per_domain": {"Drone": {"JSD": jsd, "JSD_std": 0.006}}}
+
+    points = [point("dpmpp_2m", 20, 0.49), point("ddim", 16, 0.51), point("ddim", 64, 0.495), point("student", 1, 0.5)]
+    check = teacher_settings_check(points, ["JSD", "MMD"])
+    assert list(check) == ["dpmpp_2m x 20", "ddim x 16", "ddim x 64"]  # the student is not the teacher's
+    # two standard deviations of the difference: 2 * hypot(0.006, 0.006) = 0.017 < 0.02
+    assert check["ddim x 16"]["JSD"]["held"] == 0 and check["ddim x 16"]["JSD"]["missed"] == {"Drone": pytest.approx(0.02)}
+    assert check["ddim x 64"]["JSD"] == {"held": 1, "of": 1, "missed": {}}
+    assert check["dpmpp_2m x 20"]["JSD"]["missed"] == {} and "MMD" not in check["ddim x 16"]  # no MMD scored
 
 
 def test_report_helpers():

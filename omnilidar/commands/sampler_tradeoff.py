@@ -102,32 +102,66 @@ def best_per_budget(points: list[dict], metrics: list[str]) -> dict:
     return best
 
 
+DECIDED_BY = ("JSD", "MMD")  # the metrics whose domain-by-domain verdicts decide whether a setting holds
+
+
+def teacher_best(teachers: list[dict], m: str) -> dict | None:
+    """The teacher's setting with the lowest mean ``m`` over domains (None: no setting scored it)."""
+    ok = [p for p in teachers if p[f"mean_{m}"] is not None]
+    return min(ok, key=lambda p: p[f"mean_{m}"]) if ok else None
+
+
+def holds(point: dict, best: dict, m: str, name: str) -> dict:
+    """Domain by domain, whether ``point`` holds ``best`` on ``m``: worse by at most two standard
+    deviations of the difference (the two settings' seed-group spreads combined)."""
+    import math
+
+    out = {}
+    for d, mine in point["per_domain"].items():
+        theirs = best["per_domain"][d]
+        spreads = (mine.get(f"{m}_std"), theirs.get(f"{m}_std"))
+        spread = math.hypot(*spreads) if None not in spreads else None
+        excess = mine[m] - theirs[m]
+        out[d] = {name: mine[m], "teacher": theirs[m], "excess": excess, "spread": spread,
+                  "held": bool(spread is not None and excess <= 2 * spread)}
+    return out
+
+
+def teacher_settings_check(points: list[dict], metrics: list[str]) -> dict:
+    """Every teacher setting against the teacher's best, by the student check's rule: {"sampler x
+    steps": {metric: {"held": domains held, "of": domains, "missed": {domain: excess}}}}. It says
+    whether a student's own teacher path (DDIM x teacher_steps) holds the bar the student is held to."""
+    teachers = [p for p in points if p["sampler"] != "student"]
+    out = {}
+    for p in teachers:
+        row = {}
+        for m in DECIDED_BY:
+            best = teacher_best(teachers, m) if m in metrics else None
+            if best is None or p[f"mean_{m}"] is None:
+                continue
+            verdicts = holds(p, best, m, "setting")
+            row[m] = {"held": sum(v["held"] for v in verdicts.values()), "of": len(verdicts),
+                      "missed": {d: v["excess"] for d, v in verdicts.items() if not v["held"]}}
+        out[f"{p['sampler']} x {p['steps']}"] = row
+    return out
+
+
 def student_check(points: list[dict], metrics: list[str], default: tuple[str, int] | None) -> dict | None:
     """Whether the distilled student holds the teacher's quality: per metric, the teacher's best
     setting (lowest mean over domains) against the student, domain by domain; held where the
     student is worse by at most two standard deviations of the difference (the two settings' seed
     group spreads combined). JSD and MMD decide; the feature metrics are reported beside. With the
     generator's default sampler among the points, the student's speed-up over it."""
-    import math
-
     student = next((p for p in points if p["sampler"] == "student"), None)
     teachers = [p for p in points if p["sampler"] != "student"]
     if student is None or not teachers:
         return None
-    out = {"student_steps": student["steps"], "decided_by": ["JSD", "MMD"], "metrics": {}}
+    out = {"student_steps": student["steps"], "decided_by": list(DECIDED_BY), "metrics": {}}
     for m in metrics:
-        ok = [p for p in teachers if p[f"mean_{m}"] is not None]
-        if not ok or student[f"mean_{m}"] is None:
+        best = teacher_best(teachers, m)
+        if best is None or student[f"mean_{m}"] is None:
             continue
-        best = min(ok, key=lambda p: p[f"mean_{m}"])
-        per_domain = {}
-        for d, mine in student["per_domain"].items():
-            theirs = best["per_domain"][d]
-            spreads = (mine.get(f"{m}_std"), theirs.get(f"{m}_std"))
-            spread = math.hypot(*spreads) if None not in spreads else None
-            excess = mine[m] - theirs[m]
-            per_domain[d] = {"student": mine[m], "teacher": theirs[m], "excess": excess, "spread": spread,
-                             "held": bool(spread is not None and excess <= 2 * spread)}
+        per_domain = holds(student, best, m, "student")
         out["metrics"][m] = {"teacher_best": {"sampler": best["sampler"], "steps": best["steps"]},
                              "per_domain": per_domain,
                              "missed": {d: r["excess"] for d, r in per_domain.items() if not r["held"]}}
@@ -249,6 +283,7 @@ def run(args) -> int:
         real_scans=settings["scans_per_set"], weights=w, comparable_with_paper=comparable, points=points,
         best_per_budget=best_per_budget(points, metrics), recommended=recommended,
         student_check=student_check(points, metrics, default),
+        teacher_settings_check=teacher_settings_check(points, metrics),
         recommend_rule=f"fastest setting whose mean metric is within {TOLERANCE:.2f}x of the best",
         spread_rule=(f"each domain's metric is the mean over {groups} groups of scans with distinct sampling seeds; "
                      "std_<metric> is the spread over those groups of the mean over domains (the domains' group "

@@ -240,6 +240,11 @@ def student_check(doc: dict) -> str:
         lines.append(f"- {m}: the {check['student_steps']}-step student is within two standard deviations of the "
                      f"teacher's best ({best['sampler']} x {best['steps']}) in {len(held)} of {len(c['per_domain'])} "
                      f"domains{missed}.")
+    for setting, row in (doc.get("teacher_settings_check") or {}).items():
+        verdicts = [f"{m} in {v['held']} of {v['of']}"
+                    + (" (misses " + ", ".join(f"{d} by {x:+.3g}" for d, x in v["missed"].items()) + ")"
+                       if v["missed"] else "") for m, v in row.items()]
+        lines.append(f"- The teacher's {setting} by the same rule: {'; '.join(verdicts)}.")
     if check.get("speedup_over_default"):
         default = check["default_sampler"]
         lines.append(f"- Speed: {check['speedup_over_default']:.1f}x the generator's own sampler in that run "
