@@ -272,3 +272,17 @@ def test_run_cost_compares_the_jobs_an_earlier_run_also_has(tmp_path):
     subprocess.run([sys.executable, "benchmarks/run_cost.py", "--run-dir", str(here), "--reference", str(there),
                     "--out", str(out)], cwd=ROOT, check=True, capture_output=True)
     assert set(json.loads(out.read_text())["against_reference"]["groups"]) == {"train", "labeler.tsv"}
+
+
+def test_a_student_check_names_how_each_teacher_setting_holds_the_best():
+    from omnilidar.commands.sampler_tradeoff import teacher_settings_check
+
+    doc = json.loads((ROOT / "docs/results/student_pruned_1step_check12.json").read_text())
+    assert "teacher_settings_check" not in doc  # an earlier run's file renders as before
+    plain = readme.student_check(doc)
+    doc["teacher_settings_check"] = teacher_settings_check(doc["points"], doc["metrics"])
+    text = readme.student_check(doc)
+    lines = [line for line in text.splitlines() if line.startswith("- The teacher's ")]
+    assert len(lines) == len(doc["points"]) - 1 and text.startswith(plain.split("- Speed")[0])
+    best = doc["student_check"]["metrics"]["JSD"]["teacher_best"]
+    assert f"- The teacher's {best['sampler']} x {best['steps']} by the same rule: JSD in 8 of 8" in text
