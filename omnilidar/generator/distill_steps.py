@@ -80,16 +80,22 @@ def teacher_sampler_steps(distillation: dict) -> int:
     return int(distillation["teacher_steps"]) * int(distillation.get("teacher_substeps") or 1)
 
 
+# One more pass of the trained generator, in distillation steps without it: measured in the job log
+# of the pruned 1-step student at teacher_substeps 4 on 2 CPUs (docs/results.md), a first-round
+# step took 3.1 s against 1.2 s, six more passes. A full-width student's own passes weigh more, so
+# there a teacher pass costs less than this (about a fifth of a step: 5 passes a step).
+TEACHER_PASS_COST = 0.26
+
+
 def teacher_substep_extra_steps(distillation: dict) -> float:
     """What the trained generator's further substeps add to the distillation, in its optimizer
-    steps: a step runs about 5 forward passes (the teacher's two, the student's forward and
-    backward), and each further substep one more teacher pass, twice per step of progressive
+    steps: each further substep is one more teacher pass, twice per step of progressive
     distillation's first round (the only round the trained generator teaches), once per step of
     consistency distillation's."""
     more = int(distillation.get("teacher_substeps") or 1) - 1
     if distillation["method"] == "consistency":
-        return sum(round_iterations(distillation)) * more / 5
-    return round_iterations(distillation)[0] * 2 * more / 5
+        return sum(round_iterations(distillation)) * more * TEACHER_PASS_COST
+    return round_iterations(distillation)[0] * 2 * more * TEACHER_PASS_COST
 
 
 def round_at(distillation: dict, step: int) -> int:
