@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import math
 from bisect import bisect_right
 from itertools import accumulate
 
@@ -96,6 +97,22 @@ def teacher_substep_extra_steps(distillation: dict) -> float:
     if distillation["method"] == "consistency":
         return sum(round_iterations(distillation)) * more * TEACHER_PASS_COST
     return round_iterations(distillation)[0] * 2 * more * TEACHER_PASS_COST
+
+
+def student_lr(settings: dict, step: int) -> float:
+    """The student's learning rate at optimizer step ``step`` of the whole distillation: ``lr``
+    throughout (``lr_decay: constant``), or annealed from ``lr`` towards 0 on a half cosine within
+    each phase (compression, then every round: ``cosine``), so that each round's teacher and the
+    finished student are a settled iterate rather than the last of a constant-rate walk. A function
+    of the step alone, so a resumed distillation takes the same rates."""
+    d = settings["distillation"]
+    lr = float(d["lr"])
+    if d.get("lr_decay", "constant") == "constant":
+        return lr
+    bounds = sorted({0, *accumulate([compression_iterations(settings), *round_iterations(d)])})
+    phase = min(bisect_right(bounds, step) - 1, len(bounds) - 2)
+    start, end = bounds[phase], bounds[phase + 1]
+    return lr * 0.5 * (1.0 + math.cos(math.pi * min(step - start, end - start) / (end - start)))
 
 
 def round_at(distillation: dict, step: int) -> int:

@@ -32,6 +32,7 @@ import copy
 import json
 import os
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -49,7 +50,8 @@ from omnilidar.generator.distill import (compression_loss, consistency_loss, dis
 from omnilidar.generator.distribution_matching import build_fake_score, fake_score_loss, matching_loss
 from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
                                                last_round_terms, round_iterations, round_steps, starts_from_teacher,
-                                               student_model, student_sampler, student_steps, teacher_sampler_steps)
+                                               student_lr, student_model, student_sampler, student_steps,
+                                               teacher_sampler_steps)
 from omnilidar.generator.return_decision import calibrate_returns
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
@@ -213,8 +215,9 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
 # --------------------------------------------------------------------------- hooks
 
 
-def make_hooks(settings: dict, domain_names: list[str], seed: int, provenance: dict, cost=None) -> list:
-    """Our custom hooks: weights-only-safe checkpoints (+ resolved config) and the step counter."""
+def make_hooks(settings: dict, domain_names: list[str], seed: int, provenance: dict, cost=None, lr_at=None) -> list:
+    """Our custom hooks: weights-only-safe checkpoints (+ resolved config) and the step counter;
+    with ``lr_at`` (step -> learning rate) the denoiser's rate is set before every step."""
     from mmengine.hooks import Hook
     from mmengine.model import is_model_wrapper
 
@@ -226,6 +229,11 @@ def make_hooks(settings: dict, domain_names: list[str], seed: int, provenance: d
         def before_train_iter(self, runner, batch_idx: int, data_batch=None) -> None:
             model = runner.model.module if is_model_wrapper(runner.model) else runner.model
             model.iteration = runner.iter
+            if lr_at is not None:
+                wrapper = runner.optim_wrapper
+                wrapper = wrapper["denoiser"] if "denoiser" in getattr(wrapper, "optim_wrappers", {}) else wrapper
+                for group in wrapper.optimizer.param_groups:
+                    group["lr"] = lr_at(runner.iter)
 
     meta = {"config": settings, "domains": list(domain_names), "seed": int(seed), "provenance": provenance}
     hooks = [*weights_only_hooks(meta), IterationHook()]
@@ -481,6 +489,8 @@ def train_generator(
             "critic": OptimWrapper(torch.optim.Adam(critic.parameters(), lr=float(dist["critic_lr"]),
                                                     betas=(0.0, 0.99))),
         }
+    # the student's rate, per step (a function of the step, so resumes take the same rates)
+    student_lr_at = None if dist is None or dist["lr_decay"] == "constant" else partial(student_lr, settings)
     param_scheduler = None
     if tr["warmup_iters"] > 0 and dist is None:  # a student starts from trained weights
         param_scheduler = [
@@ -507,7 +517,8 @@ def train_generator(
         optim_wrapper=optim_wrapper,
         param_scheduler=param_scheduler,
         default_hooks=iteration_hooks(tr["log_interval"], tr["checkpoint_interval"], tr["keep_checkpoints"]),
-        custom_hooks=[*([ema_hook(tr)] if dist is None else []), *make_hooks(own, names, seed, provenance, training_cost)],
+        custom_hooks=[*([ema_hook(tr)] if dist is None else []),
+                      *make_hooks(own, names, seed, provenance, training_cost, lr_at=student_lr_at)],
         launcher=launcher,
         # A CPU module takes no device_ids (mmengine's default passes LOCAL_RANK).
         cfg=None if cuda or world == 1 else dict(model_wrapper_cfg=dict(
