@@ -130,7 +130,8 @@ def holds(point: dict, best: dict, m: str, name: str) -> dict:
 def teacher_settings_check(points: list[dict], metrics: list[str]) -> dict:
     """Every teacher setting against the teacher's best, by the student check's rule: {"sampler x
     steps": {metric: {"held": domains held, "of": domains, "missed": {domain: excess}}}}. It says
-    whether a student's own teacher path (DDIM x teacher_steps) holds the bar the student is held to."""
+    whether the path a student learnt (DDIM x teacher_steps x teacher_substeps) holds the bar the
+    student is held to."""
     teachers = [p for p in points if p["sampler"] != "student"]
     out = {}
     for p in teachers:

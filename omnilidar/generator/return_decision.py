@@ -54,9 +54,9 @@ def row_thresholds(student_range: np.ndarray, student_returns: np.ndarray, teach
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
                       seed: int, batch: int = 8, log=print) -> torch.Tensor:
     """(domains, H) float32 thresholds of ``student`` against ``teacher`` (the trained generator
-    with DDIM x ``teacher_steps`` x ``teacher_substeps`` on the distillation's spacing) on ``return_calibration`` seeded
-    scans per domain; ``payload``: the student's checkpoint contents (its settings, domains and
-    their back-projection geometry)."""
+    with DDIM x ``teacher_steps`` x ``teacher_substeps``, the sampler the student learnt, on the
+    distillation's spacing) on ``return_calibration`` seeded scans per domain; ``payload``: the
+    student's checkpoint contents (its settings, domains and their back-projection geometry)."""
     from omnilidar.data.range_image import decode
     from omnilidar.generator.sampling import domain_points_spec
     from omnilidar.generator.schedule import CosineLogSNRSchedule
