@@ -7,10 +7,16 @@
         --samplers dpmpp_2m:20                           # what resolution and azimuth-window training cost
     python benchmarks/bench_generator.py --student data/generator/full/student.pt \
         --samplers dpmpp_2m:20 unipc:8                   # a distilled student beside its teacher's solvers
+    python benchmarks/bench_generator.py --levels 2 1 1,2,2,2
+                                                         # one network evaluation by UNet level, per
+                                                         # residual blocks (one number or one per level)
 
 Prints medians over --repeats runs and the ratio of each sampler setting to the first one;
 with several --geometries (HxW, or HxW:C for training on C-column azimuth windows) each
-geometry's training step and sampling time, and their ratios to the first geometry.
+geometry's training step and sampling time, and their ratios to the first geometry. With
+--levels, one forward pass (the sampling batch) of each residual-block setting, split by UNet
+level into its residual blocks and the rest (attention, CDFM, DAFS, resampling), and each
+setting's whole pass as a ratio to the first: where a student's fewer blocks save the most.
 Random weights and random prompt tokens: speed does not depend on them. With --student the
 trained checkpoints are timed instead: the student in its own DDIM steps and its teacher (the
 checkpoint the student names) with each of --samplers, on the Vehicle prompt, one run.
@@ -29,7 +35,7 @@ import bench_record
 from omnilidar.config import section_defaults
 from omnilidar.generator.diffusion import generate
 from omnilidar.generator.training import make_diffusion_model
-from omnilidar.generator.unet import build_denoiser, count_parameters
+from omnilidar.generator.unet import ResBlock, build_denoiser, count_parameters
 
 PAPER = {
     "range_image": {"height": 64, "width": 1024},
@@ -67,8 +73,13 @@ def main() -> None:
                     help="HxW or HxW:CROP image geometries to compare (default: the config's)")
     ap.add_argument("--student", default=None, help="a distilled student checkpoint (distill_generator's output)")
     ap.add_argument("--prompts", default="data/generator/prompts.pt", help="prompt cache, with --student")
+    ap.add_argument("--levels", nargs="+", default=None, metavar="BLOCKS",
+                    help="residual blocks per level to time one evaluation of, by level: N or N,N,N,N")
     bench_record.out_arg(ap)
     args = ap.parse_args()
+    if args.levels:
+        bench_record.write(args.out, *bench_levels(args))
+        return
     if args.student:
         bench_record.write(args.out, *bench_student(args))
         return
@@ -162,6 +173,81 @@ def bench_geometry(args, geometry: str | None, rows: list, figures: dict) -> tup
         rows.append({"what": f"sampling, {name} x {steps} (batch {b_sample}; {where})",
                      "median": f"{per_scan:.3g} s per scan ({per_scan / base:.2f}x the first sampler)"})
     return step, first
+
+
+def _level_hooks(den, spent: dict) -> None:
+    """Add each module's forward time to ``spent[(level, "blocks" | "other")]`` (level None: the stem,
+    the middle and the head), through forward hooks."""
+
+    def timed(module: torch.nn.Module, key) -> None:
+        module.register_forward_pre_hook(lambda m, a: setattr(m, "_t0", time.perf_counter()))
+        module.register_forward_hook(lambda m, a, o: spent.__setitem__(key, spent.get(key, 0.0)
+                                                                        + time.perf_counter() - m._t0))
+
+    levels = den.cfg.num_levels
+    for lv, (down, level) in enumerate(zip(den.down, den.enc)):
+        timed(down, (lv, "other"))
+        for part in (*level.blocks, level.cross, level.cdfm, level.dafs):
+            if part is not None:
+                timed(part, (lv, "blocks" if isinstance(part, ResBlock) else "other"))
+    for i, (level, up) in enumerate(zip(den.dec, den.up)):
+        lv = levels - 1 - i
+        timed(up, (lv, "other"))
+        for part in (*level.blocks, level.cross, level.cdfm, level.dafs):
+            if part is not None:
+                timed(part, (lv, "blocks" if isinstance(part, ResBlock) else "other"))
+    for part in (den.stem, den.mid1, den.mid_attn, den.mid_cross, den.mid2, den.head):
+        if part is not None:
+            timed(part, (None, "other"))
+
+
+def bench_levels(args) -> tuple[list, dict]:
+    """One network evaluation of each --levels residual-block setting, by UNet level, one run."""
+    device = torch.device(args.device)
+    settings = copy.deepcopy(section_defaults("generator"))
+    if args.paper:
+        _merge(settings, PAPER)
+    h, w = settings["range_image"]["height"], settings["range_image"]["width"]
+    batch = args.batch or settings["sampling"]["batch_size"]
+    text_dim, n_tok = 384, 16
+    x = torch.randn(batch, 2, h, w, device=device)
+    tokens = torch.randn(batch, n_tok, text_dim, device=device)
+    mask = torch.ones(batch, n_tok, dtype=torch.bool, device=device)
+    rows, figures, first = [], {}, None
+    for spec in args.levels:
+        blocks = [int(v) for v in spec.split(",")]
+        settings["model"]["num_res_blocks"] = blocks[0] if len(blocks) == 1 else blocks
+        torch.manual_seed(0)
+        den = build_denoiser(settings, text_dim, 8).to(device).eval()
+        spent: dict = {}
+        _level_hooks(den, spent)
+        totals, parts = [], []
+        with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.bf16):
+            for r in range(args.repeats + 1):
+                spent.clear()
+                _sync(device)
+                t0 = time.perf_counter()
+                den(x, torch.zeros(1, device=device), torch.arange(batch, device=device) % 8, tokens, mask)
+                _sync(device)
+                if r:  # the first pass warms up allocators and kernels
+                    totals.append(time.perf_counter() - t0)
+                    parts.append(dict(spent))
+        total = statistics.median(totals)
+        first = first or total
+        split = {key: statistics.median(p.get(key, 0.0) for p in parts) for key in parts[0]}
+        print(f"residual blocks {spec} ({count_parameters(den) / 1e6:.2f} M parameters, {h}x{w}, batch {batch}, "
+              f"{device}): {total:.3f} s per evaluation, {total / first:.2f}x the first")
+        for lv in range(den.cfg.num_levels):
+            b, o = split.get((lv, "blocks"), 0.0), split.get((lv, "other"), 0.0)
+            print(f"  level {lv} ({h >> lv}x{w >> lv}, {den.cfg.blocks_at(lv)} blocks): residual blocks {b:.3f} s "
+                  f"({100 * b / total:.0f} %), the rest {o:.3f} s ({100 * o / total:.0f} %)")
+        rest = split.get((None, "other"), 0.0)
+        print(f"  stem, middle and head: {rest:.3f} s ({100 * rest / total:.0f} %)")
+        rows.append({"what": f"one evaluation, residual blocks {spec} ({h}x{w}, batch {batch}, {device}, "
+                             f"{torch.get_num_threads()} threads)",
+                     "median": f"{total:.3g} s ({total / first:.2f}x the first setting)"})
+        figures[spec] = {"evaluation_s": total, "by_level": {f"{lv}:{kind}": v for (lv, kind), v in split.items()}}
+    return rows, figures
 
 
 def _time_sampling(den, payload, cache, sampler: str, steps: int, args, device) -> float:

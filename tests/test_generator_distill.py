@@ -15,7 +15,7 @@ from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.diffusion import generate
 from omnilidar.generator.distill import (_grid_logsnr, compression_loss, consistency_loss, ddim_move, distillation_loss,
                                         two_step_target)
-from omnilidar.generator.distill_steps import round_at, round_iterations, student_sampler, student_steps
+from omnilidar.generator.distill_steps import compression_iterations, round_at, round_iterations, student_sampler, student_steps
 from omnilidar.generator.samplers import SPACINGS, make_scheduler, time_grid
 from omnilidar.generator.sampling import sample_shard, student_sampling
 from omnilidar.generator.schedule import BF16_MIN_LOGSNR, CosineLogSNRSchedule, alpha_sigma, bf16_safe, predict_x0
@@ -290,6 +290,37 @@ def test_a_student_with_fewer_residual_blocks_starts_from_the_teachers_first_blo
         train_generator(wider, index, prompts, tmp_path / "wider", tmp_path / "wider.pt", seed=3,
                         teacher=tmp_path / "model.pt")
     assert not (tmp_path / "wider.pt").exists()
+
+    # One number per level: the student keeps both blocks of the full-resolution level 0 and the
+    # first of level 1 (encoder enc.1, decoder dec.0), and samples.
+    per_level = copy.deepcopy(pruned)
+    per_level["distillation"]["student_res_blocks"] = [2, 1]
+    summary = train_generator(per_level, index, prompts, tmp_path / "per_level", tmp_path / "per_level.pt", seed=3,
+                              teacher=tmp_path / "model.pt")
+    assert summary["iterations"] == 2 + 2 * 2  # another architecture: compression first
+    den, payload = load_generator(tmp_path / "per_level.pt")
+    assert payload["config"]["model"]["num_res_blocks"] == [2, 1]
+    assert [len(level.blocks) for level in den.enc] == [2, 1] and [len(level.blocks) for level in den.dec] == [1, 2]
+    student = _state(tmp_path / "per_level.pt")
+    assert {k for k in teacher if k not in student} == {
+        k for k in teacher if k.startswith(("enc.1.blocks.1.", "dec.0.blocks.1."))}
+    stats = sample_shard(den, payload, load_prompt_cache(prompts), "Fog", 0, 2,
+                         student_sampling(dict(settings["sampling"], student=True), payload, tmp_path / "per_level.pt"),
+                         5, tmp_path / "Fog", log=lambda *_: None)
+    assert stats["generated"] == 2
+    # The teacher's own blocks, listed per level, are its architecture: no compression phase.
+    same = copy.deepcopy(pruned)
+    same["distillation"]["student_res_blocks"] = [2, 2]
+    assert compression_iterations(same) == 0 and compression_iterations(per_level) == 2
+    # A list of another length, or more blocks at one level than the teacher has there: one clear
+    # error before any training, naming the setting.
+    for blocks, problem in (([1], "has 1 entries for 2 UNet levels"), ([1, 3], "exceeds .* at level 1")):
+        bad = copy.deepcopy(pruned)
+        bad["distillation"]["student_res_blocks"] = blocks
+        with pytest.raises(InputError, match=f"student_res_blocks .*{problem}"):
+            train_generator(bad, index, prompts, tmp_path / "bad", tmp_path / "bad.pt", seed=3,
+                            teacher=tmp_path / "model.pt")
+        assert not (tmp_path / "bad.pt").exists()
 
 
 @pytest.mark.parametrize("until", [2, 4])  # inside compression, and inside the first round

@@ -9,16 +9,34 @@ from bisect import bisect_right
 from itertools import accumulate
 
 
+def res_blocks_per_level(model: dict) -> list[int]:
+    """Residual blocks at each UNet level (level 0 at full resolution) of ``model`` settings, whose
+    ``num_res_blocks`` is one number for every level or a list of one per level."""
+    blocks, levels = model["num_res_blocks"], len(model["channel_multipliers"])
+    if isinstance(blocks, int):
+        return [blocks] * levels
+    if len(blocks) != levels:
+        raise ValueError(f"num_res_blocks {list(blocks)} has {len(blocks)} entries for {levels} UNet levels")
+    return [int(b) for b in blocks]
+
+
 def student_model(settings: dict) -> dict:
     """The student's model settings: the trained generator's, at ``distillation.student_channels``
-    and ``student_res_blocks`` where those are set."""
+    and ``student_res_blocks`` (one number, or one per level) where those are set."""
     d = settings["distillation"]
     model = dict(settings["model"])
     if d.get("student_channels") is not None:
         model["base_channels"] = int(d["student_channels"])
     if d.get("student_res_blocks") is not None:
-        model["num_res_blocks"] = int(d["student_res_blocks"])
+        blocks = d["student_res_blocks"]
+        model["num_res_blocks"] = int(blocks) if isinstance(blocks, int) else [int(b) for b in blocks]
     return model
+
+
+def same_architecture(a: dict, b: dict) -> bool:
+    """Whether two model settings build the same network (a list of equal residual blocks per level
+    is the same as their one number)."""
+    return {**a, "num_res_blocks": res_blocks_per_level(a)} == {**b, "num_res_blocks": res_blocks_per_level(b)}
 
 
 def starts_from_teacher(settings: dict) -> bool:
@@ -31,7 +49,7 @@ def starts_from_teacher(settings: dict) -> bool:
 def compression_iterations(settings: dict) -> int:
     """Steps in which a student of another architecture (width or residual blocks) learns the trained
     generator's denoiser first."""
-    narrow = student_model(settings) != settings["model"]
+    narrow = not same_architecture(student_model(settings), settings["model"])
     return int(settings["distillation"]["compression_iterations"]) if narrow else 0
 
 

@@ -49,7 +49,8 @@ from omnilidar.generator.distill import (compression_loss, consistency_loss, dis
                                          weighted_x0_error)
 from omnilidar.generator.distribution_matching import build_fake_score, fake_score_loss, matching_loss
 from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
-                                               last_round_terms, round_iterations, round_steps, starts_from_teacher,
+                                               last_round_terms, res_blocks_per_level, round_iterations, round_steps,
+                                               starts_from_teacher,
                                                student_lr, student_model, student_sampler, student_steps,
                                                teacher_sampler_steps)
 from omnilidar.generator.return_decision import calibrate_returns
@@ -344,6 +345,21 @@ def teacher_weights(path: str | Path, settings: dict, names: list[str], cache: d
     return frozen
 
 
+def check_student_blocks(settings: dict) -> None:
+    """One clear error for a ``student_res_blocks`` the student cannot take from its teacher: a list
+    of another length than the UNet's levels, or more blocks at a level than the teacher has there."""
+    given = settings["distillation"]["student_res_blocks"]
+    try:
+        own, teacher = res_blocks_per_level(student_model(settings)), res_blocks_per_level(settings["model"])
+    except ValueError as err:
+        raise InputError(None, f"generator.distillation.student_res_blocks {given}: {err}") from None
+    over = [lv for lv, (s, t) in enumerate(zip(own, teacher)) if s > t]
+    if over:
+        raise InputError(None, f"generator.distillation.student_res_blocks {given} exceeds the trained generator's "
+                               f"model.num_res_blocks {settings['model']['num_res_blocks']} at level {over[0]}: a "
+                               "student keeps some of its teacher's blocks")
+
+
 def check_last_round_terms(dist: dict | None) -> None:
     """One clear error for a last-round term (a critic or distribution matching) that cannot run:
     both at once, with consistency distillation (no last round), or on several processes."""
@@ -399,6 +415,8 @@ def train_generator(
     dist = settings["distillation"] if teacher is not None else None
     if dist is not None and dist.get("seed") is not None:  # a distillation seed of its own, else the run's
         seed = int(dist["seed"])
+    if dist is not None:
+        check_student_blocks(settings)
     iterations = tr["iterations"] if dist is None else distillation_iterations(settings)
     if until is not None and not 0 < until < iterations:
         raise InputError(None, f"--until {until} must lie between 0 and the {iterations} iterations to train")
@@ -407,10 +425,6 @@ def train_generator(
         raise InputError(None, f"generator.distillation: teacher_steps {dist['teacher_steps']} cannot be halved "
                                f"{dist['rounds']} times")
     check_last_round_terms(dist)
-    if dist is not None and student_model(settings)["num_res_blocks"] > settings["model"]["num_res_blocks"]:
-        raise InputError(None, f"generator.distillation.student_res_blocks {dist['student_res_blocks']} exceeds the "
-                               f"trained generator's model.num_res_blocks {settings['model']['num_res_blocks']}: "
-                               "a student keeps some of its teacher's blocks")
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)

@@ -40,7 +40,7 @@ class UNetConfig:
     coord_channels: int = 32
     base_channels: int = 64
     channel_multipliers: tuple[int, ...] = (1, 2, 4, 8)
-    num_res_blocks: int = 3
+    num_res_blocks: int | tuple[int, ...] = 3  # one number for every level, or one per level
     groupnorm_groups: int = 8
     attention_head_dim: int = 32
     dropout: float = 0.0
@@ -68,8 +68,16 @@ class UNetConfig:
     def num_levels(self) -> int:
         return len(self.channel_multipliers)
 
+    def blocks_at(self, level: int) -> int:
+        """Residual blocks of the encoder and of the decoder at ``level``."""
+        blocks = self.num_res_blocks
+        return blocks if isinstance(blocks, int) else blocks[level]
+
     def validate(self) -> None:
         n = self.num_levels
+        if not isinstance(self.num_res_blocks, int) and len(self.num_res_blocks) != n:
+            raise ValueError(f"num_res_blocks {list(self.num_res_blocks)} has {len(self.num_res_blocks)} entries "
+                             f"for {n} UNet levels")
         for name in ("cross_attention_levels", "cdfm_levels"):
             bad = [lv for lv in getattr(self, name) if not 0 <= lv < n]
             if bad:
@@ -241,7 +249,7 @@ class EfficientUNet(nn.Module):
         prev = widths[0]
         for lv, w in enumerate(widths):
             self.down.append(nn.Identity() if lv == 0 else CircularConv2d(prev, w, stride=2))
-            self.enc.append(Level(w, w, cfg.num_res_blocks, emb_dim, cfg, lv, decoder=False))
+            self.enc.append(Level(w, w, cfg.blocks_at(lv), emb_dim, cfg, lv, decoder=False))
             prev = w
         top = widths[-1]
         self.mid1 = ResBlock(top, top, emb_dim, g, cfg.dropout)
@@ -253,7 +261,7 @@ class EfficientUNet(nn.Module):
         self.up = nn.ModuleList()
         for lv in reversed(range(cfg.num_levels)):
             w = widths[lv]
-            self.dec.append(Level(2 * w, w, cfg.num_res_blocks, emb_dim, cfg, lv, decoder=True))
+            self.dec.append(Level(2 * w, w, cfg.blocks_at(lv), emb_dim, cfg, lv, decoder=True))
             self.up.append(Upsample(w, widths[lv - 1]) if lv > 0 else nn.Identity())
         self.head_norm = nn.GroupNorm(g, widths[0])
         self.head = _zero(CircularConv2d(widths[0], cfg.in_channels))
@@ -361,7 +369,7 @@ def unet_config(settings: dict, text_dim: int, num_domains: int) -> UNetConfig:
     return UNetConfig(
         base_channels=m["base_channels"],
         channel_multipliers=tuple(m["channel_multipliers"]),
-        num_res_blocks=m["num_res_blocks"],
+        num_res_blocks=m["num_res_blocks"] if isinstance(m["num_res_blocks"], int) else tuple(m["num_res_blocks"]),
         groupnorm_groups=m["groupnorm_groups"],
         attention_head_dim=m["attention_head_dim"],
         dropout=m["dropout"],
