@@ -1,5 +1,6 @@
-"""A distilled student's calibrated return decision: the per-row thresholds, how sampling applies
-them, their seeds, and a real tiny distillation that calibrates its student."""
+"""A distilled student's calibrated return decision and returns' ranges: the per-row thresholds and
+range maps, how sampling applies them, their seeds, and real tiny distillations that calibrate their
+students."""
 
 from __future__ import annotations
 
@@ -14,8 +15,8 @@ from omnilidar.data.range_image import decode
 from omnilidar.errors import InputError
 from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.data import rng_for
-from omnilidar.generator.diffusion import apply_return_thresholds, generate, scan_seed
-from omnilidar.generator.return_decision import calibration_seeds, row_thresholds
+from omnilidar.generator.diffusion import apply_range_map, apply_return_thresholds, generate, scan_seed
+from omnilidar.generator.return_decision import calibration_seeds, row_range_knots, row_thresholds
 from omnilidar.generator.sampling import domain_points_spec
 from omnilidar.generator.text import load_prompt_cache
 from omnilidar.generator.training import train_generator
@@ -100,4 +101,85 @@ def test_a_checkpoint_whose_thresholds_do_not_fit_its_image_is_one_clear_error(t
     payload["return_thresholds"] = torch.zeros(1, 3)
     torch.save(payload, tmp_path / "bad.pt")
     with pytest.raises(InputError, match="return_thresholds"):
+        load_generator(tmp_path / "bad.pt")
+
+
+def test_a_range_map_moves_the_student_s_returns_onto_its_teacher_s_quantiles():
+    rng = np.random.default_rng(1)
+    student = rng.uniform(-0.4, 0.3, (6, 3, 40)).astype(np.float32)  # nearer and narrower
+    teacher = rng.uniform(-0.5, 0.8, (6, 3, 40)).astype(np.float32)
+    returns = np.ones(student.shape, bool)
+    student_sparse = returns.copy()
+    student_sparse[2:, 2] = False
+    student_sparse[:2, 2, 2:] = False  # row 2: 4 student returns, too few for 5 knots
+    knots = row_range_knots(student, student_sparse, teacher, returns, 5)
+    assert knots.shape == (3, 2, 5)
+    np.testing.assert_allclose(knots[0, 0], np.quantile(student[:, 0], np.linspace(0, 1, 5)), rtol=1e-6)
+    np.testing.assert_allclose(knots[0, 1], np.quantile(teacher[:, 0], np.linspace(0, 1, 5)), rtol=1e-6)
+    assert np.array_equal(knots[2, 0], knots[2, 1])  # the identity map
+    images = torch.from_numpy(np.stack([student, rng.uniform(-1, 1, student.shape).astype(np.float32)], axis=1))
+    images[0, 0, 1, :3] = -1.0  # drop-outs, below every knot
+    mapped = apply_range_map(images, torch.from_numpy(knots))
+    assert torch.equal(mapped[:, 1], images[:, 1]) and (mapped[0, 0, 1, :3] == -1.0).all()
+    for row in (0, 1):  # np.interp is the same piecewise-linear map
+        values = images[:, 0, row].numpy()
+        ok = values >= knots[row, 0, 0]
+        np.testing.assert_allclose(mapped[:, 0, row].numpy()[ok], np.interp(values[ok], knots[row, 0], knots[row, 1]),
+                                   rtol=0, atol=1e-6)
+    # The student's returns now spread as its teacher's: same extremes, nearly the same quantiles.
+    row0 = mapped[1:, 0, 0].numpy()
+    assert abs(row0.min() - teacher[:, 0].min()) < 1e-6 and abs(row0.max() - teacher[:, 0].max()) < 1e-6
+    shift = abs(np.median(student[:, 0]) - np.median(teacher[:, 0]))
+    assert abs(np.median(row0) - np.median(teacher[:, 0])) < 0.05 < shift
+    assert torch.equal(mapped[:, 0, 2], images[:, 0, 2])  # the identity row is untouched
+
+
+def test_a_tiny_distillation_maps_its_student_s_returns_onto_its_teacher_s(teacher, tmp_path):
+    root, settings, index, prompts, _ = teacher
+    calibrated = copy.deepcopy(settings)
+    calibrated["distillation"].update(return_calibration=4, range_calibration=5)
+    train_generator(calibrated, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                    teacher=root / "model.pt")
+    student, payload = load_generator(tmp_path / "student.pt")
+    h = settings["range_image"]["height"]
+    assert payload["range_map"].shape == (len(TINY_DOMAINS), h, 2, 5)
+    assert payload["student"]["range_calibration"] == 5
+    gen, _ = load_generator(root / "model.pt")
+    cache = load_prompt_cache(prompts)
+    mapped_rows = 0
+    for d, name in enumerate(TINY_DOMAINS):
+        spec = domain_points_spec(payload["config"], payload, name)
+        entry = cache["domains"][name]
+
+        def sample(net, steps):
+            images = generate(net, d, entry["tokens"][0], entry["mask"][0], calibration_seeds(3, name, 4), spec.shape,
+                              "ddim", steps).numpy()
+            return images[:, 0], np.stack([decode(img, spec)[2] for img in images])
+
+        (t_range, t_ret), (s_range, s_ret) = sample(gen, 4), sample(student, 1)
+        for row in range(h):
+            knots = payload["range_map"][d, row].numpy()
+            if np.array_equal(knots[0], knots[1]):
+                continue
+            # On its calibration noise the student's returns in a mapped row span its teacher's.
+            assert s_ret[:, row].sum() >= 5
+            np.testing.assert_allclose([s_range[:, row][s_ret[:, row]].min(), s_range[:, row][s_ret[:, row]].max()],
+                                       [t_range[:, row][t_ret[:, row]].min(), t_range[:, row][t_ret[:, row]].max()],
+                                       atol=1e-5)
+            mapped_rows += 1
+    assert mapped_rows  # some rows are mapped, so the check above checks something
+    # Without the return calibration's scans there is nothing to map on: one clear error, no student.
+    alone = copy.deepcopy(settings)
+    alone["distillation"].update(range_calibration=5)
+    with pytest.raises(InputError, match="range_calibration 5 .*return_calibration"):
+        train_generator(alone, index, prompts, tmp_path / "alone", tmp_path / "alone.pt", seed=3,
+                        teacher=root / "model.pt")
+    assert not (tmp_path / "alone.pt").exists()
+
+
+def test_a_checkpoint_whose_range_map_does_not_fit_its_image_is_one_clear_error(teacher, tmp_path):
+    payload = torch.load(teacher[0] / "student.pt", weights_only=True)
+    payload["range_map"] = torch.zeros(len(TINY_DOMAINS), 3, 2, 5)
+    torch.save(payload, tmp_path / "bad.pt")
+    with pytest.raises(InputError, match="range_map"):
         load_generator(tmp_path / "bad.pt")

@@ -44,4 +44,10 @@ def load_generator(path: str | Path, device: str | torch.device = "cpu", backend
         if tuple(thresholds.shape) != (len(payload["domains"]), int(settings["range_image"]["height"])):
             raise InputError(path, f"return_thresholds are {tuple(thresholds.shape)}, not (domains, image rows)")
         denoiser.return_thresholds = thresholds.float()
+    range_map = payload.get("range_map")  # a range-calibrated student's
+    if range_map is not None:
+        rows = int(settings["range_image"]["height"])
+        if range_map.dim() != 4 or tuple(range_map.shape[:3]) != (len(payload["domains"]), rows, 2):
+            raise InputError(path, f"range_map is {tuple(range_map.shape)}, not (domains, image rows, 2, knots)")
+        denoiser.range_map = range_map.float()
     return denoiser.to(device).eval(), payload

@@ -84,6 +84,24 @@ def apply_return_thresholds(images: torch.Tensor, thresholds: torch.Tensor) -> t
     return torch.where(empty[:, None], torch.full_like(images, -1.0), images)
 
 
+def apply_range_map(images: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
+    """(B, 2, H, W) images whose encoded ranges at or above their row's lowest student knot move
+    along the row's monotone piecewise-linear map from the student's knots ``knots[:, 0]`` to the
+    teacher's ``knots[:, 1]`` ((H, 2, K)): a calibrated student's returns
+    (:mod:`omnilidar.generator.return_decision`); drop-outs and intensities are untouched."""
+    b, _, h, w = images.shape
+    xp, fp = knots[:, 0].to(images), knots[:, 1].to(images)
+    x = images[:, 0].permute(1, 0, 2).reshape(h, b * w).contiguous()  # one row of values per image row
+    hi = torch.searchsorted(xp.contiguous(), x, right=True).clamp(1, xp.shape[1] - 1)
+    x0, x1, y0, y1 = (t.gather(1, i) for t, i in ((xp, hi - 1), (xp, hi), (fp, hi - 1), (fp, hi)))
+    frac = torch.where(x1 > x0, (x - x0) / (x1 - x0).clamp_min(1e-12), torch.ones_like(x)).clamp(0.0, 1.0)
+    moved = (x >= xp[:, :1]) & (xp != fp).any(dim=1, keepdim=True)  # an identity row keeps its values exactly
+    mapped = torch.where(moved, y0 + frac * (y1 - y0), x)
+    out = images.clone()
+    out[:, 0] = mapped.reshape(h, b, w).permute(1, 0, 2)
+    return out
+
+
 @torch.no_grad()
 def generate(
     denoiser: torch.nn.Module,
@@ -110,8 +128,8 @@ def generate(
     scan stays its source; at 1 it is a fresh sample (``init`` is then not used).
 
     A distilled student with calibrated ``return_thresholds`` (attached by
-    :func:`~omnilidar.generator.checkpoint.load_generator`) decides its drop-outs with them
-    (:mod:`omnilidar.generator.return_decision`).
+    :func:`~omnilidar.generator.checkpoint.load_generator`) decides its drop-outs with them, and
+    with a ``range_map`` maps its returns' ranges (:mod:`omnilidar.generator.return_decision`).
     """
     if not 0.0 < strength <= 1.0:
         raise ValueError(f"strength must be in (0, 1], got {strength}")
@@ -144,6 +162,9 @@ def generate(
     thresholds = getattr(denoiser, "return_thresholds", None)  # a calibrated student's return decision
     if thresholds is not None:
         x = apply_return_thresholds(x, thresholds[int(domain_index)])
+    range_map = getattr(denoiser, "range_map", None)  # and its returns' ranges
+    if range_map is not None:
+        x = apply_range_map(x, range_map[int(domain_index)])
     return x.cpu()
 
 

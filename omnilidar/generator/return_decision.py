@@ -13,6 +13,14 @@ student's checkpoint (``return_thresholds``, (domains, rows)) and
 :func:`omnilidar.generator.diffusion.apply_return_thresholds` applies them to every scan the student
 samples. Calibration seeds are their own stream, so no
 evaluation scan's noise is among them.
+
+``generator.distillation.range_calibration`` K > 0 maps, on the same scans, the distribution of
+the student's returned encoded ranges onto its teacher's, per domain and image row: K quantiles of
+each (after the return decision) are the knots of a monotone piecewise-linear map
+(``range_map``, (domains, rows, 2, K): student knots, teacher knots) that
+:func:`omnilidar.generator.diffusion.apply_range_map` applies to the student's returns. A one-step
+x0 regression pulls what it cannot place towards the mean, so far surfaces come nearer: its
+returns' ranges shrink where its teacher's spread (measured in docs/results.md).
 """
 
 from __future__ import annotations
@@ -51,12 +59,29 @@ def row_thresholds(student_range: np.ndarray, student_returns: np.ndarray, teach
     return out
 
 
+def row_range_knots(student_range: np.ndarray, student_returns: np.ndarray, teacher_range: np.ndarray,
+                    teacher_returns: np.ndarray, knots: int) -> np.ndarray:
+    """(H, 2, knots) float32: per image row, ``knots`` evenly spaced quantiles (0 to 1) of the
+    student's returned encoded ranges and of the teacher's (channel-0 values and returns masks, each
+    (N, H, W)). A row where either returns fewer than ``knots`` times keeps the identity map."""
+    levels = np.linspace(0.0, 1.0, knots)
+    out = np.repeat(np.linspace(-1.0, 1.0, knots)[None, None], student_range.shape[1], axis=0)
+    out = np.repeat(out, 2, axis=1).astype(np.float32)
+    for row in range(student_range.shape[1]):
+        own, theirs = student_range[:, row][student_returns[:, row]], teacher_range[:, row][teacher_returns[:, row]]
+        if min(own.size, theirs.size) >= knots:
+            out[row] = np.quantile(own, levels), np.quantile(theirs, levels)
+    return out
+
+
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
-                      seed: int, batch: int = 8, log=print) -> torch.Tensor:
-    """(domains, H) float32 thresholds of ``student`` against ``teacher`` (the trained generator
-    with DDIM x ``teacher_steps`` x ``teacher_substeps``, the sampler the student learnt, on the
-    distillation's spacing) on ``return_calibration`` seeded scans per domain; ``payload``: the
-    student's checkpoint contents (its settings, domains and their back-projection geometry)."""
+                      seed: int, batch: int = 8, log=print) -> dict[str, torch.Tensor]:
+    """The student's calibration against ``teacher`` (the trained generator with DDIM x
+    ``teacher_steps`` x ``teacher_substeps``, the sampler the student learnt, on the distillation's
+    spacing) on ``return_calibration`` seeded scans per domain: ``return_thresholds`` (domains, H)
+    float32, and with ``range_calibration`` K > 0 ``range_map`` (domains, H, 2, K) float32 of the
+    thresholded student's returns; ``payload``: the student's checkpoint contents (its settings,
+    domains and their back-projection geometry)."""
     from omnilidar.data.range_image import decode
     from omnilidar.generator.sampling import domain_points_spec
     from omnilidar.generator.schedule import CosineLogSNRSchedule
@@ -65,8 +90,9 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
     distillation, d = settings["distillation"], settings["diffusion"]
     schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
     scans, sampler = int(distillation["return_calibration"]), student_sampler(distillation)
+    knots = int(distillation.get("range_calibration") or 0)
     student, teacher = student.eval(), teacher.eval()
-    out = []
+    out, maps = [], []
     for index, name in enumerate(payload["domains"]):
         spec, entry = domain_points_spec(settings, payload, name), prompt_cache["domains"][name]
         seeds = calibration_seeds(seed, name, scans)
@@ -80,4 +106,15 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
         out.append(row_thresholds(sampled["student"][:, 0], returns["student"], returns["teacher"]))
         log(f"return calibration {name}: returns {returns['teacher'].mean():.3f} (teacher), "
             f"{returns['student'].mean():.3f} (student), rows thresholded {int((out[-1] > -1).sum())}/{spec.shape[0]}")
-    return torch.from_numpy(np.stack(out))
+        if knots:
+            kept = returns["student"] & (sampled["student"][:, 0] > out[-1][None, :, None])
+            maps.append(row_range_knots(sampled["student"][:, 0], kept, sampled["teacher"][:, 0], returns["teacher"],
+                                        knots))
+            mean = {who: float(sampled[who][:, 0][mask].mean()) for who, mask in
+                    (("teacher", returns["teacher"]), ("student", kept))}
+            log(f"range calibration {name}: mean encoded range of the returns {mean['teacher']:+.3f} (teacher), "
+                f"{mean['student']:+.3f} (student)")
+    calibration = {"return_thresholds": torch.from_numpy(np.stack(out))}
+    if knots:
+        calibration["range_map"] = torch.from_numpy(np.stack(maps))
+    return calibration

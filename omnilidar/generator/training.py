@@ -425,6 +425,9 @@ def train_generator(
         raise InputError(None, f"generator.distillation: teacher_steps {dist['teacher_steps']} cannot be halved "
                                f"{dist['rounds']} times")
     check_last_round_terms(dist)
+    if dist is not None and dist["range_calibration"] and not dist["return_calibration"]:
+        raise InputError(None, f"generator.distillation.range_calibration {dist['range_calibration']} maps the "
+                               "student's returns on the return calibration's scans: set return_calibration > 0")
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
@@ -600,10 +603,10 @@ def train_generator(
             payload["student"] = {"sampler": student_sampler(dist), "steps": student_steps(dist),
                                   "teacher": str(teacher), "teacher_steps": int(dist["teacher_steps"]),
                                   "teacher_substeps": int(dist["teacher_substeps"]), "rounds": int(dist["rounds"]),
-                                  "method": dist["method"], "return_calibration": int(dist["return_calibration"])}
+                                  "method": dist["method"], "return_calibration": int(dist["return_calibration"]),
+                                  "range_calibration": int(dist["range_calibration"])}
             if int(dist["return_calibration"]):
-                payload["return_thresholds"] = calibrate_returns(final, frozen, payload, cache, seed,
-                                                                 log=runner.logger.info)
+                payload.update(calibrate_returns(final, frozen, payload, cache, seed, log=runner.logger.info))
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
     runner.logger.info(f"wrote {out}")
