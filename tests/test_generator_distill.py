@@ -4,6 +4,8 @@ resume, provenance, sampling with the student in every domain, and the workflow'
 from __future__ import annotations
 
 import copy
+import json
+import re
 import shutil
 
 import numpy as np
@@ -474,6 +476,22 @@ def test_the_student_check_trains_no_segmentor_and_the_full_study_keeps_its_curv
     assert "--gda-curve" not in out.split("rule sampler_tradeoff:", 1)[1]
     full = planned_jobs(wf, "results/tradeoff.json", "--configfile", "config/test.yaml")
     assert full["gda_curve"] == 1 and full["train_labeler"] == 1
+
+
+def test_the_one_step_recipe_distils_a_calibrated_pruned_student_and_checks_it_on_12_scans(tmp_path):
+    """config/student_1step.yaml (laid over config/student.yaml): the distillation job gets the
+    recipe's settings and the check its 12 scans in 4 groups."""
+    wf = copy_workflow(tmp_path)
+    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml")
+    assert planned_jobs(wf, "results/tradeoff.json", *args)["distill_generator"] == 1
+    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args).stdout
+    distill = json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
+    assert {k: distill[k] for k in ("teacher_steps", "teacher_substeps", "rounds", "student_res_blocks",
+                                    "return_calibration", "range_calibration")} == {
+        "teacher_steps": 32, "teacher_substeps": 2, "rounds": 5, "student_res_blocks": 1, "return_calibration": 8,
+        "range_calibration": 17}
+    tradeoff = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])
+    assert (tradeoff["tradeoff"]["scans"], tradeoff["tradeoff"]["seed_groups"]) == (12, 4)
 
 
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
