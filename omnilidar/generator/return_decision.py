@@ -19,8 +19,8 @@ the student's returned encoded ranges onto its teacher's, per domain and image r
 each (after the return decision) are the knots of a monotone piecewise-linear map
 (``range_map``, (domains, rows, 2, K): student knots, teacher knots) that
 :func:`omnilidar.generator.diffusion.apply_range_map` applies to the student's returns. A one-step
-x0 regression pulls what it cannot place towards the mean, so far surfaces come nearer: its
-returns' ranges shrink where its teacher's spread (measured in docs/results.md).
+x0 regression pulls what it cannot place towards the mean, so far surfaces come nearer and one
+row's ranges lie closer together than its teacher's (``benchmarks/measure_student_returns.py``).
 """
 
 from __future__ import annotations
@@ -65,8 +65,7 @@ def row_range_knots(student_range: np.ndarray, student_returns: np.ndarray, teac
     student's returned encoded ranges and of the teacher's (channel-0 values and returns masks, each
     (N, H, W)). A row where either returns fewer than ``knots`` times keeps the identity map."""
     levels = np.linspace(0.0, 1.0, knots)
-    out = np.repeat(np.linspace(-1.0, 1.0, knots)[None, None], student_range.shape[1], axis=0)
-    out = np.repeat(out, 2, axis=1).astype(np.float32)
+    out = np.tile(np.linspace(-1.0, 1.0, knots, dtype=np.float32), (student_range.shape[1], 2, 1))  # identity
     for row in range(student_range.shape[1]):
         own, theirs = student_range[:, row][student_returns[:, row]], teacher_range[:, row][teacher_returns[:, row]]
         if min(own.size, theirs.size) >= knots:

@@ -48,11 +48,10 @@ from omnilidar.generator.adversarial import build_critic, critic_loss, fooling_l
 from omnilidar.generator.distill import (compression_loss, consistency_loss, distillation_loss, progressive_pair,
                                          weighted_x0_error)
 from omnilidar.generator.distribution_matching import build_fake_score, fake_score_loss, matching_loss
-from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, round_at,
-                                               last_round_terms, res_blocks_per_level, round_iterations, round_steps,
-                                               starts_from_teacher,
-                                               student_lr, student_model, student_sampler, student_steps,
-                                               teacher_sampler_steps)
+from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, last_round_terms,
+                                               res_blocks_per_level, round_at, round_iterations, round_steps,
+                                               starts_from_teacher, student_lr, student_model, student_sampler,
+                                               student_steps, teacher_sampler_steps)
 from omnilidar.generator.return_decision import calibrate_returns
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
