@@ -54,6 +54,12 @@ def _merge(base, patch):
     return base
 
 
+def _settings(args) -> dict:
+    """The embedded default's generator settings, at paper scale with --paper."""
+    settings = copy.deepcopy(section_defaults("generator"))
+    return _merge(settings, PAPER) if args.paper else settings
+
+
 def _sync(device):
     if device.type == "cuda":
         torch.cuda.synchronize()
@@ -100,9 +106,7 @@ def bench_geometry(args, geometry: str | None, rows: list, figures: dict) -> tup
     s/scan of the first sampler)."""
 
     device = torch.device(args.device)
-    settings = copy.deepcopy(section_defaults("generator"))
-    if args.paper:
-        _merge(settings, PAPER)
+    settings = _settings(args)
     if geometry:
         size, _, crop = geometry.partition(":")
         height, width = (int(v) for v in size.split("x"))
@@ -185,15 +189,10 @@ def _level_hooks(den, spent: dict) -> None:
                                                                         + time.perf_counter() - m._t0))
 
     levels = den.cfg.num_levels
-    for lv, (down, level) in enumerate(zip(den.down, den.enc)):
-        timed(down, (lv, "other"))
-        for part in (*level.blocks, level.cross, level.cdfm, level.dafs):
-            if part is not None:
-                timed(part, (lv, "blocks" if isinstance(part, ResBlock) else "other"))
-    for i, (level, up) in enumerate(zip(den.dec, den.up)):
-        lv = levels - 1 - i
-        timed(up, (lv, "other"))
-        for part in (*level.blocks, level.cross, level.cdfm, level.dafs):
+    encoder = [(lv, level, down) for lv, (down, level) in enumerate(zip(den.down, den.enc))]
+    decoder = [(levels - 1 - i, level, up) for i, (level, up) in enumerate(zip(den.dec, den.up))]
+    for lv, level, resample in encoder + decoder:
+        for part in (*level.blocks, level.cross, level.cdfm, level.dafs, resample):
             if part is not None:
                 timed(part, (lv, "blocks" if isinstance(part, ResBlock) else "other"))
     for part in (den.stem, den.mid1, den.mid_attn, den.mid_cross, den.mid2, den.head):
@@ -204,9 +203,7 @@ def _level_hooks(den, spent: dict) -> None:
 def bench_levels(args) -> tuple[list, dict]:
     """One network evaluation of each --levels residual-block setting, by UNet level, one run."""
     device = torch.device(args.device)
-    settings = copy.deepcopy(section_defaults("generator"))
-    if args.paper:
-        _merge(settings, PAPER)
+    settings = _settings(args)
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     batch = args.batch or settings["sampling"]["batch_size"]
     text_dim, n_tok = 384, 16
