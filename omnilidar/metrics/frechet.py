@@ -20,13 +20,16 @@ takes each factor from a Cholesky factorisation when the covariance is positive
 definite, else from ``eigh`` over the eigenvalues above the round-off level of
 that solve (below it the computed covariance carries no information; this keeps
 round-off noise of a singular covariance out of the sum). The squared singular
-values of G = F1^T F2 are the eigenvalues of the smaller of G G^T and G^T G,
-positive semi-definite by construction: negative ones are round-off and count
-as 0, and no positive one is dropped. (An earlier version dropped eigenvalues of
-F1^T S2 F1 below 10 D eps x the largest: at 1024-d with feature standard
-deviations spread over three decades it lost genuine ones and was 1e-5 relative
-off; now 1e-14. ``svdvals(G)`` would be more accurate still for spectra
-spanning 1e-16, but costs twice as much.)
+values of G = F1^T F2 are, when both factors are Cholesky factors, the
+eigenvalues of the smaller of G G^T and G^T G, positive semi-definite by
+construction: negative ones are round-off and count as 0, and no positive one
+is dropped. (An earlier version dropped eigenvalues of F1^T S2 F1 below
+10 D eps x the largest: at 1024-d with feature standard deviations spread over
+three decades it lost genuine ones and was 1e-5 relative off; now 1e-14.) When
+a covariance is singular, G has singular values near 0 (where the two supports
+meet at wide angles) and squaring them would leave sqrt(eps)-sized round-off in
+the sum (1e-11 relative with 300 samples in 512-d); there the singular values
+come from ``svdvals(G)``, two to three times the cost of that last step.
 
 With the features themselves at hand (``frechet_from_features``) the same
 identity gives the Gram route when samples are fewer than dimensions: with
@@ -83,9 +86,10 @@ def _psd_factor(s: np.ndarray, what: str) -> tuple[np.ndarray, bool]:
 
 def trace_sqrt_product(s1: np.ndarray, s2: np.ndarray) -> float:
     """Tr(sqrtm(S1 S2)) for symmetric positive semi-definite S1, S2 (D x D):
-    the sum of singular values of G = F1^T F2, from the eigenvalues of the
-    smaller of G G^T and G^T G (positive semi-definite by construction, so
-    negative eigenvalues are round-off and count as 0; nothing else dropped)."""
+    the sum of singular values of G = F1^T F2: from ``svdvals(G)`` when a
+    covariance is singular, else from the eigenvalues of the smaller of G G^T
+    and G^T G (positive semi-definite by construction, so negative eigenvalues
+    are round-off and count as 0; nothing else dropped)."""
     for s, what in ((s1, "the first covariance"), (s2, "the second covariance")):
         if np.any(np.diagonal(s) < 0.0):
             raise InputError(None, f"{what} is not positive semi-definite (negative variance)")
@@ -107,6 +111,11 @@ def trace_sqrt_product(s1: np.ndarray, s2: np.ndarray) -> float:
         g = dtrmm(1.0, np.asfortranarray(f2), np.array(f1, order="F"), side=0, lower=1, trans_a=1).T
     else:
         g = f1.T @ f2
+    if not (lower1 and lower2):
+        # a singular covariance: G has singular values near 0 wherever the two
+        # supports meet at a wide angle, and squaring them (G G^T) would put
+        # sqrt(eps)-sized round-off into the sum; the SVD keeps them exact
+        return float(scipy.linalg.svdvals(g).sum())
     gram = g @ g.T if g.shape[0] <= g.shape[1] else g.T @ g
     return float(np.sqrt(np.clip(np.linalg.eigvalsh(gram), 0.0, None)).sum())
 
@@ -137,8 +146,8 @@ def frechet_distance(mu1, sigma1, mu2, sigma2) -> float:
 
     Exact up to round-off, real-valued, valid for singular covariances (fewer
     samples than dimensions), and fast (a Cholesky or ``eigh`` and one
-    ``eigvalsh`` of a D x D matrix). Identical covariances give exactly the
-    squared mean distance.
+    ``eigvalsh``, or for a singular covariance ``svdvals``, of a D x D matrix).
+    Identical covariances give exactly the squared mean distance.
     """
     m1 = _as_vector(mu1, "mu1")
     m2 = _as_vector(mu2, "mu2")
