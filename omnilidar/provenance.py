@@ -61,10 +61,17 @@ def _strip_docstrings(tree: ast.AST) -> ast.AST:
 
 def _module_file(dotted: str) -> Path | None:
     """Path of a package module ``omnilidar.a.b`` (module file or package __init__)."""
+    return _module_file_under(PACKAGE_DIR, dotted)
+
+
+# A Snakemake start resolves some ten thousand dotted names (a tenth of its parse time uncached).
+# Like the parsed modules, what this process read of the package is kept until clear_caches().
+@cache
+def _module_file_under(package_dir: Path, dotted: str) -> Path | None:
     parts = dotted.split(".")
     if parts[0] != PACKAGE:
         return None
-    base = PACKAGE_DIR.joinpath(*parts[1:])
+    base = package_dir.joinpath(*parts[1:])
     for candidate in (base.with_suffix(".py"), base / "__init__.py"):
         if candidate.is_file():
             return candidate
@@ -191,6 +198,13 @@ def _source_facts(path: Path, source: str) -> _SourceFacts:
     return facts
 
 
+def clear_caches() -> None:
+    """Forget what this process read of the package: for a caller that edits modules between
+    two hashes (the tests); a Snakemake start reads each file once."""
+    for cached in (_module_file_under, _parsed, _covered_under):
+        cached.cache_clear()
+
+
 class _Parsed(NamedTuple):
     code: str  # AST dump without docstrings
     imports: frozenset[Path]  # ordinary imports
@@ -285,12 +299,17 @@ def _canonical(name: str, raw: bytes) -> bytes:
 def _covered(*modules: str, exclude: tuple[str, ...] = ()) -> tuple[list[tuple[Path, str]], list[Path]]:
     """What a stage's code hash covers: (module file, its code without docstrings) in closure
     order, and the data files those modules declare, sorted."""
+    return _covered_under(PACKAGE_DIR, modules, tuple(exclude))
+
+
+@cache  # the hash and the manifest of a stage (rules/common.smk) cover the same files
+def _covered_under(package_dir: Path, modules: tuple[str, ...], exclude: tuple[str, ...]):
     code, data = [], set()
     for f in module_closure(*modules, exclude=exclude):
         parsed = _parsed(f)
         code.append((f, parsed.code))
         data.update(parsed.data_files)
-    return code, sorted(data)
+    return tuple(code), tuple(sorted(data))
 
 
 def code_hash(*modules: str, exclude: tuple[str, ...] = ()) -> str:
@@ -354,13 +373,11 @@ def package_versions(names=VERSIONED_PACKAGES) -> dict:
 
 
 def device_description() -> str:
-    try:
-        import torch
-
-        if torch.cuda.is_available():
-            return f"cuda:{torch.cuda.get_device_name(0)}"
-    except ImportError:
-        pass
+    """The GPU where the stage has torch and one is visible, else the CPU. A stage that never
+    imported torch ran on the CPU, and importing it here only to ask cost 2-3 s per result job."""
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_available():
+        return f"cuda:{torch.cuda.get_device_name(0)}"
     return f"cpu:{platform.processor() or platform.machine()}"
 
 

@@ -33,13 +33,13 @@ def package_copy(tmp_path, monkeypatch):
             return f() + helpers.X
         '''))
     monkeypatch.setattr(provenance, "PACKAGE_DIR", pkg)
-    provenance._parsed.cache_clear()
+    provenance.clear_caches()
     yield pkg
-    provenance._parsed.cache_clear()
+    provenance.clear_caches()
 
 
 def _hash():
-    provenance._parsed.cache_clear()
+    provenance.clear_caches()
     return provenance.command_code_hash("stage")
 
 
@@ -110,7 +110,7 @@ def test_exclude_cuts_the_registry_import_but_not_imports_by_used_modules(packag
     assert {"registry.py", "used.py", "shared.py"} <= files and "unused.py" not in files
 
     def stage_hash():
-        provenance._parsed.cache_clear()
+        provenance.clear_caches()
         return provenance.command_code_hash("stage", exclude=exclude)
 
     before = stage_hash()
@@ -166,9 +166,9 @@ def project_copy(tmp_path, monkeypatch, project_root):
                     ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copytree(project_root / "workflow" / "schemas", tmp_path / "workflow" / "schemas")
     monkeypatch.setattr(provenance, "PACKAGE_DIR", tmp_path / "omnilidar")
-    provenance._parsed.cache_clear()
+    provenance.clear_caches()
     yield tmp_path
-    provenance._parsed.cache_clear()
+    provenance.clear_caches()
 
 
 EFFECTS = ("beam_missing", "beam_reduction", "fog", "rain", "snow", "wet_ground")
@@ -176,7 +176,7 @@ EFFECTS = ("beam_missing", "beam_reduction", "fog", "rain", "snow", "wet_ground"
 
 def _domain_hash(*used):
     """build-domain's hash for a domain applying ``used`` (as rules/common.smk's domain_code)."""
-    provenance._parsed.cache_clear()
+    provenance.clear_caches()
     unused = tuple(f"omnilidar.domains.effects.{m}" for m in EFFECTS if m not in used)
     return provenance.command_code_hash("build-domain", exclude=unused)
 
@@ -198,7 +198,7 @@ def test_a_domain_depends_on_its_effects_and_what_they_import_only(project_copy)
 
 
 def _command_hashes(*commands):
-    provenance._parsed.cache_clear()
+    provenance.clear_caches()
     return [provenance.command_code_hash(c) for c in commands]
 
 
@@ -260,3 +260,15 @@ def test_parsed_module_facts_are_cached_by_content_and_a_damaged_entry_is_recomp
     monkeypatch.setenv("OMNILIDAR_CACHE_DIR", str(blocked))
     (package_copy / "core.py").write_text("def f():\n    return 1\n")
     assert _hash() == first
+
+
+def test_a_results_envelope_leaves_torch_unimported_and_names_the_cpu():
+    """A stage without torch (the data summary, the result tables) writes its envelope without
+    importing torch for the device field: it ran on the CPU."""
+    import subprocess
+
+    code = ("import sys; from omnilidar.provenance import envelope; "
+            "e = envelope('x', 'summarize-data', {}, {}, {}, 'synthetic'); "
+            "print(e['device'].split(':')[0], 'torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["cpu", "False"]
