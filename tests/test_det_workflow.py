@@ -204,6 +204,7 @@ def tiny_chain(tmp_path_factory):
     return tmp_path, root, settings, shard
 
 
+@pytest.mark.slow
 def test_tiny_chain_trains_for_real(tiny_chain):
     import torch
 
@@ -226,6 +227,7 @@ def test_tiny_chain_trains_for_real(tiny_chain):
     assert cfg.platform == "drone" and any(k.startswith("roi_head.") for k in real["model_state"])
 
 
+@pytest.mark.slow
 def test_tiny_chain_scores_for_real(tiny_chain):
     """Evaluation of the runs and the labeler, and the result target."""
     import json

@@ -194,6 +194,7 @@ def test_tiny_workflow_runs_and_reruns_only_what_changed(tmp_path):
     assert jobs == {"synthesize": shards, "index_dataset": 4, "data_summary": 1}
 
 
+@pytest.mark.slow
 def test_one_gpu_profile_plans_full_resolution_and_runs_tiny_on_the_cpu(tmp_path):
     """config/gpu.yaml laid over the default: the generator on whole 64 x 1024 sweeps, a wider labeler
     trained longer, the students' regime unchanged. Laid over the tiny config with tiny sizes, its
