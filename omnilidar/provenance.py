@@ -296,7 +296,7 @@ def _canonical(name: str, raw: bytes) -> bytes:
     return json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str).encode()
 
 
-def _covered(*modules: str, exclude: tuple[str, ...] = ()) -> tuple[list[tuple[Path, str]], list[Path]]:
+def _covered(*modules: str, exclude: tuple[str, ...] = ()) -> tuple[tuple[tuple[Path, str], ...], tuple[Path, ...]]:
     """What a stage's code hash covers: (module file, its code without docstrings) in closure
     order, and the data files those modules declare, sorted."""
     return _covered_under(PACKAGE_DIR, modules, tuple(exclude))
