@@ -134,16 +134,24 @@ def test_a_range_map_moves_the_student_s_returns_onto_its_teacher_s_quantiles():
     assert torch.equal(mapped[:, 0, 2], images[:, 0, 2])  # the identity row is untouched
 
 
-def test_a_tiny_distillation_maps_its_student_s_returns_onto_its_teacher_s(teacher, tmp_path):
+@pytest.mark.parametrize("calibrated_on", [None, ("ddpm", 3)], ids=["learnt-path", "ddpm"])
+def test_a_tiny_distillation_maps_its_student_s_returns_onto_its_teacher_s(teacher, tmp_path, calibrated_on):
+    """On the DDIM path the student learnt (the tiny teacher's DDIM x 4), or on the scans of the
+    teacher's sampler that ``calibration_sampler`` names (an ancestral one, DDPM x 3)."""
     root, settings, index, prompts, _ = teacher
     calibrated = copy.deepcopy(settings)
     calibrated["distillation"].update(return_calibration=4, range_calibration=5)
+    teacher_sampler = ("ddim", 4)
+    if calibrated_on:
+        calibrated["distillation"]["calibration_sampler"] = dict(zip(("sampler", "steps"), calibrated_on))
+        teacher_sampler = calibrated_on
     train_generator(calibrated, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
                     teacher=root / "model.pt")
     student, payload = load_generator(tmp_path / "student.pt")
     h = settings["range_image"]["height"]
     assert payload["range_map"].shape == (len(TINY_DOMAINS), h, 2, 5)
     assert payload["student"]["range_calibration"] == 5
+    assert payload["student"]["calibration_sampler"] == "{}:{}".format(*teacher_sampler)
     gen, _ = load_generator(root / "model.pt")
     cache = load_prompt_cache(prompts)
     mapped_rows = 0
@@ -151,12 +159,12 @@ def test_a_tiny_distillation_maps_its_student_s_returns_onto_its_teacher_s(teach
         spec = domain_points_spec(payload["config"], payload, name)
         entry = cache["domains"][name]
 
-        def sample(net, steps):
+        def sample(net, sampler, steps):
             images = generate(net, d, entry["tokens"][0], entry["mask"][0], calibration_seeds(3, name, 4), spec.shape,
-                              "ddim", steps).numpy()
+                              sampler, steps).numpy()
             return images[:, 0], np.stack([decode(img, spec)[2] for img in images])
 
-        (t_range, t_ret), (s_range, s_ret) = sample(gen, 4), sample(student, 1)
+        (t_range, t_ret), (s_range, s_ret) = sample(gen, *teacher_sampler), sample(student, "ddim", 1)
         for row in range(h):
             knots = payload["range_map"][d, row].numpy()
             if np.array_equal(knots[0], knots[1]):
@@ -168,6 +176,16 @@ def test_a_tiny_distillation_maps_its_student_s_returns_onto_its_teacher_s(teach
                                        atol=1e-5)
             mapped_rows += 1
     assert mapped_rows  # some rows are mapped, so the check above checks something
+    if calibrated_on:  # a calibration sampler that cannot run: one clear error, no student
+        for change, match in (({"calibration_sampler": {"sampler": "euler", "steps": 3}}, "unknown sampler 'euler'"),
+                              ({"return_calibration": 0, "range_calibration": 0}, "ddpm:3 samples the return")):
+            wrong = copy.deepcopy(calibrated)
+            wrong["distillation"].update(change)
+            with pytest.raises(InputError, match=match):
+                train_generator(wrong, index, prompts, tmp_path / "wrong", tmp_path / "wrong.pt", seed=3,
+                                teacher=root / "model.pt")
+            assert not (tmp_path / "wrong.pt").exists()
+        return
     # Without the return calibration's scans there is nothing to map on: one clear error, no student.
     alone = copy.deepcopy(settings)
     alone["distillation"].update(range_calibration=5)

@@ -101,6 +101,16 @@ def teacher_sampler_steps(distillation: dict) -> int:
     return int(distillation["teacher_steps"]) * int(distillation.get("teacher_substeps") or 1)
 
 
+def calibration_sampler(distillation: dict) -> tuple[str, int]:
+    """(sampler, steps) of the trained generator on whose scans the finished student's returns and
+    ranges are calibrated: ``calibration_sampler`` where set, else the DDIM path the student learnt
+    (on the distillation's spacing, ``teacher_steps`` x ``teacher_substeps``)."""
+    chosen = distillation.get("calibration_sampler")
+    if chosen:
+        return str(chosen["sampler"]), int(chosen["steps"])
+    return student_sampler(distillation), teacher_sampler_steps(distillation)
+
+
 # One more pass of the trained generator, in distillation steps without it: measured in the job log
 # of the pruned 1-step student at teacher_substeps 4 on 2 CPUs (docs/results.md), a first-round
 # step took 3.1 s against 1.2 s, six more passes. A full-width student's own passes weigh more, so

@@ -32,7 +32,7 @@ import torch
 
 from omnilidar.generator.data import rng_for
 from omnilidar.generator.diffusion import generate
-from omnilidar.generator.distill_steps import student_sampler, student_steps, teacher_sampler_steps
+from omnilidar.generator.distill_steps import calibration_sampler, student_sampler, student_steps
 
 CALIBRATION_STREAM = 0xCA1B
 
@@ -77,7 +77,7 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
                       seed: int, batch: int = 8, log=print) -> dict[str, torch.Tensor]:
     """The student's calibration against ``teacher`` (the trained generator with DDIM x
     ``teacher_steps`` x ``teacher_substeps``, the sampler the student learnt, on the distillation's
-    spacing) on ``return_calibration`` seeded scans per domain: ``return_thresholds`` (domains, H)
+    spacing, or with ``calibration_sampler``) on ``return_calibration`` seeded scans per domain: ``return_thresholds`` (domains, H)
     float32, and with ``range_calibration`` K > 0 ``range_map`` (domains, H, 2, K) float32 of the
     thresholded student's returns; ``payload``: the student's checkpoint contents (its settings,
     domains and their back-projection geometry)."""
@@ -89,6 +89,7 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
     distillation, d = settings["distillation"], settings["diffusion"]
     schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
     scans, sampler = int(distillation["return_calibration"]), student_sampler(distillation)
+    teacher_sampler, teacher_steps = calibration_sampler(distillation)
     knots = int(distillation.get("range_calibration") or 0)
     student, teacher = student.eval(), teacher.eval()
     out, maps = [], []
@@ -96,10 +97,10 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
         spec, entry = domain_points_spec(settings, payload, name), prompt_cache["domains"][name]
         seeds = calibration_seeds(seed, name, scans)
         sampled = {}
-        for who, net, steps in (("teacher", teacher, teacher_sampler_steps(distillation)),
-                                ("student", student, student_steps(distillation))):
+        for who, net, how, steps in (("teacher", teacher, teacher_sampler, teacher_steps),
+                                     ("student", student, sampler, student_steps(distillation))):
             sampled[who] = np.concatenate([
-                generate(net, index, entry["tokens"][0], entry["mask"][0], seeds[i:i + batch], spec.shape, sampler,
+                generate(net, index, entry["tokens"][0], entry["mask"][0], seeds[i:i + batch], spec.shape, how,
                          steps, schedule).numpy() for i in range(0, scans, batch)])
         returns = {who: np.stack([decode(img, spec)[2] for img in images]) for who, images in sampled.items()}
         out.append(row_thresholds(sampled["student"][:, 0], returns["student"], returns["teacher"]))

@@ -48,11 +48,12 @@ from omnilidar.generator.adversarial import build_critic, critic_loss, fooling_l
 from omnilidar.generator.distill import (compression_loss, consistency_loss, distillation_loss, progressive_pair,
                                          weighted_x0_error)
 from omnilidar.generator.distribution_matching import build_fake_score, fake_score_loss, matching_loss
-from omnilidar.generator.distill_steps import (compression_iterations, distillation_iterations, last_round_terms,
-                                               res_blocks_per_level, round_at, round_iterations, round_steps,
-                                               starts_from_teacher, student_lr, student_model, student_sampler,
-                                               student_steps, teacher_sampler_steps)
+from omnilidar.generator.distill_steps import (calibration_sampler, compression_iterations, distillation_iterations,
+                                               last_round_terms, res_blocks_per_level, round_at, round_iterations,
+                                               round_steps, starts_from_teacher, student_lr, student_model,
+                                               student_sampler, student_steps, teacher_sampler_steps)
 from omnilidar.generator.return_decision import calibrate_returns
+from omnilidar.generator.samplers import SAMPLER_NAMES
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
 from omnilidar.generator.unet import build_denoiser, count_parameters
@@ -359,6 +360,18 @@ def check_student_blocks(settings: dict) -> None:
                                "student keeps some of its teacher's blocks")
 
 
+def check_calibration_sampler(dist: dict) -> None:
+    """One clear error for a ``calibration_sampler`` that names no sampler, or that has no
+    return calibration's scans to sample."""
+    name, steps = calibration_sampler(dist)
+    if name not in SAMPLER_NAMES:
+        raise InputError(None, f"generator.distillation.calibration_sampler: unknown sampler {name!r}; choose from "
+                               f"{', '.join(SAMPLER_NAMES)}")
+    if not dist["return_calibration"]:
+        raise InputError(None, f"generator.distillation.calibration_sampler {name}:{steps} samples the return "
+                               "calibration's scans: set return_calibration > 0")
+
+
 def check_last_round_terms(dist: dict | None) -> None:
     """One clear error for a last-round term (a critic or distribution matching) that cannot run:
     both at once, with consistency distillation (no last round), or on several processes."""
@@ -427,6 +440,8 @@ def train_generator(
     if dist is not None and dist["range_calibration"] and not dist["return_calibration"]:
         raise InputError(None, f"generator.distillation.range_calibration {dist['range_calibration']} maps the "
                                "student's returns on the return calibration's scans: set return_calibration > 0")
+    if dist is not None and dist.get("calibration_sampler"):
+        check_calibration_sampler(dist)
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
@@ -603,7 +618,8 @@ def train_generator(
                                   "teacher": str(teacher), "teacher_steps": int(dist["teacher_steps"]),
                                   "teacher_substeps": int(dist["teacher_substeps"]), "rounds": int(dist["rounds"]),
                                   "method": dist["method"], "return_calibration": int(dist["return_calibration"]),
-                                  "range_calibration": int(dist["range_calibration"])}
+                                  "range_calibration": int(dist["range_calibration"]),
+                                  "calibration_sampler": "{}:{}".format(*calibration_sampler(dist))}
             if int(dist["return_calibration"]):
                 payload.update(calibrate_returns(final, frozen, payload, cache, seed, log=runner.logger.info))
         with atomic_path(out) as tmp:
