@@ -78,8 +78,8 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
     """The student's calibration against ``teacher`` (the trained generator with DDIM x
     ``teacher_steps`` x ``teacher_substeps``, the sampler the student learnt, on the distillation's
     spacing, or with ``calibration_sampler``) on ``return_calibration`` seeded scans per domain:
-    ``return_thresholds`` (domains, H) float32, and with ``range_calibration`` K > 0 ``range_map`` (domains, H, 2, K) float32 of the
-    thresholded student's returns; ``payload``: the student's checkpoint contents (its settings,
+    ``return_thresholds`` (domains, H) float32, and with ``range_calibration`` K > 0 ``range_map``
+    (domains, H, 2, K) float32 of the thresholded student's returns; ``payload``: the student's checkpoint contents (its settings,
     domains and their back-projection geometry)."""
     from omnilidar.data.range_image import decode
     from omnilidar.generator.sampling import domain_points_spec
