@@ -360,9 +360,11 @@ def check_student_blocks(settings: dict) -> None:
                                "student keeps some of its teacher's blocks")
 
 
-def check_calibration_sampler(dist: dict) -> None:
+def check_calibration_sampler(dist: dict | None) -> None:
     """One clear error for a ``calibration_sampler`` that names no sampler, or that has no
-    return calibration's scans to sample."""
+    return calibration's scans to sample (unset: nothing to check)."""
+    if dist is None or not dist.get("calibration_sampler"):
+        return
     name, steps = calibration_sampler(dist)
     if name not in SAMPLER_NAMES:
         raise InputError(None, f"generator.distillation.calibration_sampler: unknown sampler {name!r}; choose from "
@@ -440,8 +442,7 @@ def train_generator(
     if dist is not None and dist["range_calibration"] and not dist["return_calibration"]:
         raise InputError(None, f"generator.distillation.range_calibration {dist['range_calibration']} maps the "
                                "student's returns on the return calibration's scans: set return_calibration > 0")
-    if dist is not None and dist.get("calibration_sampler"):
-        check_calibration_sampler(dist)
+    check_calibration_sampler(dist)
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
