@@ -98,6 +98,19 @@ def test_a_distillation_with_distribution_matching_trains_another_student_that_s
     assert payload["config"]["distillation"]["distribution_matching_weight"] == 0.5
 
 
+def test_distribution_matching_alone_in_the_last_round_trains_another_student(teacher, tmp_path):
+    """last_round_regression_weight 0: the last round's student learns from the matching term alone
+    (DMD2's choice); its regression is still logged, and the student differs from the one that
+    also regresses (same seed, same draws)."""
+    with_regression = _matching(teacher[1])
+    alone = copy.deepcopy(with_regression)
+    alone["distillation"]["last_round_regression_weight"] = 0.0
+    distil_with_a_second_network(teacher, alone, tmp_path / "alone", ("loss_matching", "x0_regression"))
+    distil_with_a_second_network(teacher, with_regression, tmp_path / "both", ("loss_matching", "x0_regression"))
+    a, b = _state(tmp_path / "alone" / "student.pt"), _state(tmp_path / "both" / "student.pt")
+    assert not all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_an_interrupted_distillation_with_distribution_matching_resumes_to_the_same_student(teacher, tmp_path):
     resumes_inside_the_last_round(teacher, _matching(teacher[1]), tmp_path)
 
@@ -105,6 +118,9 @@ def test_an_interrupted_distillation_with_distribution_matching_resumes_to_the_s
 @pytest.mark.parametrize("change, message", [
     ({"method": "consistency"}, "distribution_matching_weight.*progressive"),
     ({"adversarial_weight": 0.5}, "set one of them"),
+    # the regression weighed beside no last-round term at all
+    ({"distribution_matching_weight": 0, "last_round_regression_weight": 0.0},
+     "last_round_regression_weight 0.0.*distribution_matching_weight"),
 ])
 def test_distribution_matching_that_cannot_run_is_one_clear_error(teacher, tmp_path, change, message):
     root, settings, index, prompts, _ = teacher

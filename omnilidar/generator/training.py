@@ -196,17 +196,22 @@ def make_diffusion_model(denoiser, settings: dict, prompt_tokens: torch.Tensor, 
                                                             round_steps(dist, round_index), gen,
                                                             crop_width=self.crop_width, spacing=dist["spacing"],
                                                             substeps=substeps)
-            loss = weighted_x0_error(x0, l_t, target, dist["huber_c"])
+            regression = weighted_x0_error(x0, l_t, target, dist["huber_c"])
+            # The term's weight is relative to the unweighted regression; the regression itself may
+            # weigh less (0: the term alone). "x0_regression" is logged, not summed into the loss.
+            losses = {"loss": float(dist["last_round_regression_weight"]) * regression,
+                      "x0_regression": regression.detach()}
             # The second network's loss is returned uncomputed: train_step draws it per update.
             scans = x0.detach()
             if last_round_terms(dist) == ["adversarial_weight"]:  # a critic against the training scans
-                return {"loss": loss,
-                        "loss_fooling": fooling_loss(self.critic, x0, domain, loss, float(dist["adversarial_weight"])),
+                return {**losses,
+                        "loss_fooling": fooling_loss(self.critic, x0, domain, regression,
+                                                     float(dist["adversarial_weight"])),
                         "loss_critic": lambda: critic_loss(self.critic, real, scans.clamp(-1.0, 1.0), domain)}
             # a fake score of the student's scans against the trained generator's
-            matching = matching_loss(self.teacher, self.critic, x0, domain, tokens, mask, self.schedule, gen, loss,
-                                     float(dist["distribution_matching_weight"]), extra)
-            return {"loss": loss, "loss_matching": matching,
+            matching = matching_loss(self.teacher, self.critic, x0, domain, tokens, mask, self.schedule, gen,
+                                     regression, float(dist["distribution_matching_weight"]), extra)
+            return {**losses, "loss_matching": matching,
                     "loss_critic": lambda: fake_score_loss(self.critic, scans, domain, tokens, mask, self.schedule,
                                                            self.gamma, gen, self.weighting, extra)}
 
@@ -380,6 +385,11 @@ def check_last_round_terms(dist: dict | None) -> None:
     if dist is None:
         return
     terms = last_round_terms(dist)
+    regression_weight = float(dist.get("last_round_regression_weight", 1.0))
+    if regression_weight != 1.0 and not terms:
+        raise InputError(None, f"generator.distillation.last_round_regression_weight {regression_weight} weighs the "
+                               "regression beside a last-round term: set adversarial_weight or "
+                               "distribution_matching_weight, or leave it at 1")
     if len(terms) > 1:
         raise InputError(None, "generator.distillation: adversarial_weight and distribution_matching_weight each "
                                "train a second network in the last round; set one of them")
