@@ -176,6 +176,9 @@ def test_sampler_tradeoff_one_run(fixture_dir):
     assert set(t["best_per_budget"]) == {"1", "2"} and t["best_per_budget"]["2"]["JSD"]["candidates"] == 2
     # The one-step student and DDIM x 1 sample the same untrained network the same way.
     assert t["points"][-1]["mean_JSD"] == pytest.approx(t["points"][0]["mean_JSD"])
+    # The study names the student it scored, beyond the study's own settings.
+    assert t["student"]["checkpoint"] == str(r / "student.pt") and t["student"]["steps"] == 1
+    assert t["student"]["teacher_steps"] == 2 and t["student"]["seed"] == payload["seed"]
     check = t["student_check"]
     assert check["decided_by"] == ["JSD", "MMD"] and set(check["metrics"]) == {"JSD", "MMD", "FRID"}
     jsd = check["metrics"]["JSD"]

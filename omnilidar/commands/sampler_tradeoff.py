@@ -53,6 +53,18 @@ def effect_curves(path) -> list[dict]:
     return curves
 
 
+def describe_student(path: str, payload: dict) -> dict:
+    """Which student the study scored: the config hash covers only the study's own settings, so
+    the student's distillation settings, seed and training provenance travel with the result."""
+    from omnilidar.provenance import config_hash
+
+    return {"checkpoint": str(path), **payload["student"], "seed": payload.get("seed"),
+            "distillation": payload["config"].get("distillation"),
+            # Versions are recorded in a provenance but do not decide what it trains.
+            "provenance_hash": config_hash({k: v for k, v in payload["provenance"].items() if k != "versions"})
+            if payload.get("provenance") else None}
+
+
 def downstream_curve(path) -> tuple[list[dict], dict | None]:
     """(rows, setup) of a GDA curve file (mIoU against generated scans and their
     compute seconds); ([], None) when no file is given. A bad file is an InputError."""
@@ -229,11 +241,13 @@ def run(args) -> int:
         sample_images(den, payload, cache, domains[0], 1, "ddim", 1, args.seed, 1)
     settings_list = [(sampler, steps, den, payload) for sampler, steps_list in cfg["samplers"].items()
                      for steps in steps_list]
+    student_record = None
     if cfg["student"]:
         student, student_payload = load_generator(args.student, device)
         if not student_payload.get("student"):
             raise InputError(args.student, "not a distilled student (distill_generator's output)")
         settings_list.append(("student", int(student_payload["student"]["steps"]), student, student_payload))
+        student_record = describe_student(args.student, student_payload)
     t_all = time.perf_counter()
     points = []
     for sampler, steps, model, model_payload in settings_list:
@@ -290,6 +304,7 @@ def run(args) -> int:
                      "std_<metric> is the spread over those groups of the mean over domains (the domains' group "
                      "spreads combined as independent)"),
         effects=effect_curves(args.effects), downstream=downstream, downstream_setup=downstream_setup,
+        student=student_record,
     )
     write_outputs(result, args.out)
     tradeoff_figure(args.figure, result)
