@@ -173,6 +173,17 @@ def job_provenance(command: str, settings: dict, seed: int, inputs: dict) -> dic
             "versions": package_versions()}
 
 
+DECIDING_KEYS = ("command", "code", "settings", "seed", "inputs")  # a provenance's versions do not decide
+
+
+def provenance_hash(provenance: dict) -> str:
+    """A short hash of what decides a training job's result (its provenance without the versions):
+    equal for two jobs that provenance_differences finds no difference between."""
+    from omnilidar.provenance import config_hash
+
+    return config_hash({k: provenance.get(k) for k in DECIDING_KEYS})
+
+
 def provenance_differences(stored: dict | None, current: dict) -> list[str]:
     """Why a stored provenance does not match the current one (empty when it does)."""
     if not isinstance(stored, dict):

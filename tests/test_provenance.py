@@ -272,3 +272,19 @@ def test_a_results_envelope_leaves_torch_unimported_and_names_the_cpu():
             "print(e['device'].split(':')[0], 'torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["cpu", "False"]
+
+
+def test_a_provenance_hash_follows_what_decides_a_job_and_not_the_versions(tmp_path):
+    from omnilidar.checkpoints import job_provenance, provenance_differences, provenance_hash
+
+    data = tmp_path / "in.txt"
+    data.write_text("a")
+    base = job_provenance("distill-generator", {"rounds": 3}, 0, {"teacher": data})
+    other_versions = {**base, "versions": {"torch": "0.0"}}
+    assert provenance_differences(base, other_versions) == []
+    assert provenance_hash(other_versions) == provenance_hash(base)
+    for changed in (job_provenance("distill-generator", {"rounds": 4}, 0, {"teacher": data}),
+                    job_provenance("distill-generator", {"rounds": 3}, 1, {"teacher": data})):
+        assert provenance_differences(base, changed) and provenance_hash(changed) != provenance_hash(base)
+    data.write_text("b")  # the input's content, not its path, decides
+    assert provenance_hash(job_provenance("distill-generator", {"rounds": 3}, 0, {"teacher": data})) != provenance_hash(base)

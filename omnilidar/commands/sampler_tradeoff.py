@@ -56,13 +56,11 @@ def effect_curves(path) -> list[dict]:
 def describe_student(path: str, payload: dict) -> dict:
     """Which student the study scored: the config hash covers only the study's own settings, so
     the student's distillation settings, seed and training provenance travel with the result."""
-    from omnilidar.provenance import config_hash
+    from omnilidar.checkpoints import provenance_hash
 
     return {"checkpoint": str(path), **payload["student"], "seed": payload.get("seed"),
             "distillation": payload["config"].get("distillation"),
-            # Versions are recorded in a provenance but do not decide what it trains.
-            "provenance_hash": config_hash({k: v for k, v in payload["provenance"].items() if k != "versions"})
-            if payload.get("provenance") else None}
+            "provenance_hash": provenance_hash(payload["provenance"]) if payload.get("provenance") else None}
 
 
 def downstream_curve(path) -> tuple[list[dict], dict | None]:
