@@ -16,7 +16,9 @@ from omnilidar.metrics.bev import (
     bev_histogram,
     bev_histograms,
     bev_jsd,
+    between_scan_distance,
     bev_mmd,
+    bev_mmd_terms,
     bev_scores,
     bev_scores_from_histograms,
     js_distance,
@@ -177,6 +179,33 @@ def test_mmd_matches_naive_and_chunking_changes_nothing(monkeypatch):
     assert bev_mmd(a, b) == pytest.approx(expected, rel=1e-10)
     monkeypatch.setattr(bev, "_BLOCK_BYTES", 8 * 20)  # a few rows per block
     assert bev_mmd(a, b) == pytest.approx(expected, rel=1e-10)
+
+
+def test_mmd_terms_add_up_to_the_mmd_and_a_less_varied_set_scores_worse():
+    rng = np.random.default_rng(5)
+    real = rng.poisson(3.0, (12, 20, 20)).astype(float)
+    varied = rng.poisson(3.0, (8, 20, 20)).astype(float)
+    t = bev_mmd_terms(varied, real)
+    assert t["within_x"] + t["within_y"] - 2.0 * t["across"] == pytest.approx(bev_mmd(varied, real), rel=1e-12)
+    # Every scan of ``alike`` is one of ``varied``'s, so each is as close to the real set as before,
+    # but the set varies less: its within term rises and so does its MMD.
+    alike = np.repeat(varied[:2], 4, axis=0)
+    assert between_scan_distance(alike) < between_scan_distance(varied)
+    assert bev_mmd_terms(alike, real)["within_x"] > t["within_x"]
+    assert bev_mmd(alike, real) > bev_mmd(varied, real)
+
+
+def test_between_scan_distance_matches_naive_pairs():
+    rng = np.random.default_rng(6)
+    hists = rng.poisson(2.0, (7, 10, 10)).astype(float)
+    flat = (hists / hists.sum(axis=(1, 2), keepdims=True)).reshape(7, -1)
+    naive = np.mean([np.sum((flat[i] - flat[j]) ** 2) for i in range(7) for j in range(7) if i != j])
+    assert between_scan_distance(hists) == pytest.approx(naive, rel=1e-10)
+    across = np.mean([np.sum((flat[i] - flat[j]) ** 2) for i in range(3) for j in range(3, 7)])
+    assert between_scan_distance(hists[:3], hists[3:]) == pytest.approx(across, rel=1e-10)
+    assert between_scan_distance(np.repeat(hists[:1], 3, axis=0)) == pytest.approx(0.0, abs=1e-12)  # rounding only
+    with pytest.raises(InputError, match="2 non-empty scans"):
+        between_scan_distance(np.concatenate([hists[:1], np.zeros((2, 10, 10))]))
 
 
 def test_mmd_identical_sets_about_zero_and_never_negative(kitti_scans):

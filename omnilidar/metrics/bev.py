@@ -274,27 +274,66 @@ def _gaussian_kernel_sum(a: np.ndarray, b: np.ndarray | None, sigma: float) -> f
     return float(total)
 
 
+def mmd_terms(x: np.ndarray, y: np.ndarray, sigma: float = MMD_SIGMA) -> dict[str, float]:
+    """The three mean kernel values of the biased squared MMD (V-statistic, diagonal included)
+    between the rows of ``x`` (n, K) and ``y`` (m, K), Gaussian kernel of width ``sigma``:
+    ``within_x`` and ``within_y`` (how alike the scans of one set are to each other) and
+    ``across``. MMD^2 = within_x + within_y - 2 across: a set whose scans vary less scores a
+    higher MMD against the same other set, however close each scan is to it."""
+    return {"within_x": _gaussian_kernel_sum(x, None, sigma) / (len(x) * len(x)),
+            "within_y": _gaussian_kernel_sum(y, None, sigma) / (len(y) * len(y)),
+            "across": _gaussian_kernel_sum(x, y, sigma) / (len(x) * len(y))}
+
+
 def mmd_squared(x: np.ndarray, y: np.ndarray, sigma: float = MMD_SIGMA) -> float:
-    """Biased squared MMD (V-statistic, diagonal included) between the rows of
-    ``x`` (n, K) and ``y`` (m, K) with a Gaussian kernel of width ``sigma``;
+    """Biased squared MMD (:func:`mmd_terms`) between the rows of ``x`` (n, K) and ``y`` (m, K);
     clamped at 0 (it is a squared RKHS norm; rounding can go a hair below)."""
-    kxx = _gaussian_kernel_sum(x, None, sigma) / (len(x) * len(x))
-    kyy = _gaussian_kernel_sum(y, None, sigma) / (len(y) * len(y))
-    kxy = _gaussian_kernel_sum(x, y, sigma) / (len(x) * len(y))
-    return max(kxx + kyy - 2.0 * kxy, 0.0)
+    t = mmd_terms(x, y, sigma)
+    return max(t["within_x"] + t["within_y"] - 2.0 * t["across"], 0.0)
+
+
+def _normalised_pair(hists_a, hists_b) -> tuple[np.ndarray, np.ndarray]:
+    """Both sets' per-scan normalised histograms on the cells some scan of either uses (cells
+    empty in every scan of both sets add nothing to any distance)."""
+    a, _ = normalise_per_scan(hists_a, "set A")
+    b, _ = normalise_per_scan(hists_b, "set B")
+    if a.shape[1] != b.shape[1]:
+        raise InputError(None, f"histogram sizes differ: {a.shape[1]} and {b.shape[1]} cells")
+    used = (a > 0).any(axis=0) | (b > 0).any(axis=0)
+    return np.ascontiguousarray(a[:, used]), np.ascontiguousarray(b[:, used])
 
 
 def bev_mmd(hists_a, hists_b, *, sigma: float = MMD_SIGMA) -> float:
     """BEV MMD (raw value; multiply by ``MMD_REPORT_SCALE`` for the papers'
     x1e-4 units) between two sets of per-scan histograms. Empty scans are left
     out (see module docstring); ``bev_scores`` reports how many."""
-    a, _ = normalise_per_scan(hists_a, "set A")
-    b, _ = normalise_per_scan(hists_b, "set B")
-    if a.shape[1] != b.shape[1]:
-        raise InputError(None, f"histogram sizes differ: {a.shape[1]} and {b.shape[1]} cells")
-    # Cells empty in every scan of both sets add nothing to any distance: drop them.
-    used = (a > 0).any(axis=0) | (b > 0).any(axis=0)
-    return mmd_squared(np.ascontiguousarray(a[:, used]), np.ascontiguousarray(b[:, used]), sigma)
+    return mmd_squared(*_normalised_pair(hists_a, hists_b), sigma)
+
+
+def bev_mmd_terms(hists_a, hists_b, *, sigma: float = MMD_SIGMA) -> dict[str, float]:
+    """:func:`mmd_terms` of :func:`bev_mmd` (set A is x): where a set's MMD comes from."""
+    return mmd_terms(*_normalised_pair(hists_a, hists_b), sigma)
+
+
+def between_scan_distance(hists, other=None) -> float:
+    """Mean squared distance between the per-scan normalised BEV histograms of two distinct scans
+    of one set (raw; x ``MMD_REPORT_SCALE`` as MMD is reported): how much the set's scans differ
+    from each other. With ``other``, between a scan of each set instead: how far the set's scans
+    lie from the other's. The protocol's MMD kernel is far wider than these distances, so a set's
+    ``within`` term of :func:`mmd_terms` falls with the first almost linearly and ``across``
+    with the second."""
+    h, _ = normalise_per_scan(hists)
+    o = h if other is None else normalise_per_scan(other, "other set")[0]
+    if other is None and len(h) < 2:
+        raise InputError(None, f"a between-scan distance needs 2 non-empty scans or more, got {len(h)}")
+    if h.shape[1] != o.shape[1]:
+        raise InputError(None, f"histogram sizes differ: {h.shape[1]} and {o.shape[1]} cells")
+    d2 = np.einsum("ij,ij->i", h, h)[:, None] + np.einsum("ij,ij->i", o, o)[None, :] - 2.0 * (h @ o.T)
+    np.maximum(d2, 0.0, out=d2)
+    if other is not None:
+        return float(d2.mean())
+    n = len(h)
+    return float((d2.sum() - np.trace(d2)) / (n * (n - 1)))
 
 
 def mmd_in_report_units(value: float) -> float:
