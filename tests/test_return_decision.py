@@ -95,6 +95,28 @@ def test_a_tiny_distillation_calibrates_its_student_to_its_teacher_s_returns(tea
     assert thresholded  # the tiny student over-fills some rows, so the check above checks something
 
 
+def test_calibrating_a_finished_distillation_again_resumes_it_and_does_not_distil_it_again(teacher, tmp_path):
+    import shutil
+
+    root, settings, index, prompts, plain = teacher
+    work = tmp_path / "work"
+    shutil.copytree(root / "student_work", work)  # the fixture's finished, uncalibrated distillation
+    calibrated = copy.deepcopy(settings)
+    calibrated["distillation"].update(return_calibration=4, range_calibration=3)
+    again = train_generator(calibrated, index, prompts, work, tmp_path / "student.pt", seed=3, teacher=root / "model.pt")
+    # Resumed at the last step: no step taken, the same weights, now with the calibration.
+    assert again["resumed_from"] == plain["iterations"] == again["iterations"]
+    assert again["weights_digest"] == plain["weights_digest"]
+    payload = torch.load(tmp_path / "student.pt", weights_only=True)
+    assert payload["return_thresholds"].shape[0] == len(TINY_DOMAINS) and payload["range_map"].shape[-1] == 3
+    assert payload["student"]["return_calibration"] == 4 and payload["student"]["range_calibration"] == 3
+    # A setting that changes what a step computes distils again from the start.
+    longer = copy.deepcopy(calibrated)
+    longer["distillation"]["iterations_per_round"] += 1
+    fresh = train_generator(longer, index, prompts, work, tmp_path / "longer.pt", seed=3, teacher=root / "model.pt")
+    assert fresh["resumed_from"] == 0 and fresh["iterations"] > plain["iterations"]
+
+
 def test_a_checkpoint_whose_thresholds_do_not_fit_its_image_is_one_clear_error(teacher, tmp_path):
     root = teacher[0]
     payload = torch.load(root / "student.pt", weights_only=True)

@@ -76,11 +76,19 @@ def use_training_device(name: str) -> None:
         resolve_device(name, "generator.training.device")
 
 
+# Distillation keys that only calibrate the finished student (omnilidar.generator.return_decision),
+# after its last step: a distillation whose settings differ only in these resumes the finished
+# student of the same work directory and calibrates it again, without distilling it again.
+_CALIBRATION_KEYS = ("return_calibration", "range_calibration", "calibration_sampler")
+
+
 def trajectory_settings(settings: dict, distilling: bool = False) -> dict:
     """The settings that determine the training trajectory (provenance of a run); the
-    distillation section only where the run is a distillation."""
+    distillation section, less its calibration, only where the run is a distillation."""
     relevant = {k: v for k, v in settings.items() if k != "sampling" and (distilling or k != "distillation")}
     relevant["training"] = {k: v for k, v in settings["training"].items() if k not in _RESUMABLE_KEYS}
+    if distilling:
+        relevant["distillation"] = {k: v for k, v in settings["distillation"].items() if k not in _CALIBRATION_KEYS}
     return json.loads(json.dumps(relevant, sort_keys=True, default=str))
 
 
