@@ -58,6 +58,16 @@ def test_an_earlier_decomposition_kept_under_its_own_name_renders_as_a_decomposi
     assert readme.gda_decomposition(doc).rstrip() in text
 
 
+def test_a_short_student_check_renders_the_student_s_row_and_verdicts_alone():
+    text = "<!-- results:student_1step_best_teacher.short -->\n<!-- /results:student_1step_best_teacher.short -->\n"
+    short = readme.render_page(text, ROOT / "docs" / "results")
+    full = readme.render_page(text.replace(".short", ""), ROOT / "docs" / "results")
+    rows = [line for line in short.splitlines() if line.startswith("| ") and not line.startswith("| sampler")]
+    assert len(rows) == 1 and rows[0].startswith("| student | 1 |") and rows[0] in full
+    assert "- JSD: the 1-step student" in short and "- MMD: the 1-step student" in short and "- Speed:" in short
+    assert "The teacher's" not in short and "The teacher's" in full
+
+
 def test_readme_and_docs_agree_with_the_results_kept_in_docs():
     """Every number README and docs/ quote in a results block is what docs/results/*.json holds."""
     pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

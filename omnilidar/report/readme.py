@@ -227,11 +227,10 @@ def sampler_points(doc: dict) -> str:
                                    f"groups of scans with distinct sampling seeds +- their spread; {doc['device']}."])
 
 
-def student_check(doc: dict) -> str:
-    """The sampler study's settings side by side, and the student against the teacher's best."""
-    lines = [sampler_points(doc)]
-    check = doc["student_check"]
-    lines.append("")
+def _student_lines(doc: dict, teacher_settings: bool = True) -> list[str]:
+    """The student against the teacher's best per metric, (the teacher's other settings by the same
+    rule,) and its speed, one line each."""
+    check, lines = doc["student_check"], []
     for m in check["decided_by"]:
         c = check["metrics"][m]
         best = c["teacher_best"]
@@ -240,7 +239,7 @@ def student_check(doc: dict) -> str:
         lines.append(f"- {m}: the {check['student_steps']}-step student is within two standard deviations of the "
                      f"teacher's best ({best['sampler']} x {best['steps']}) in {len(held)} of {len(c['per_domain'])} "
                      f"domains{missed}.")
-    for setting, row in (doc.get("teacher_settings_check") or {}).items():
+    for setting, row in (doc.get("teacher_settings_check") or {}).items() if teacher_settings else ():
         verdicts = [f"{m} in {v['held']} of {v['of']}"
                     + (" (misses " + ", ".join(f"{d} by {x:+.3g}" for d, x in v["missed"].items()) + ")"
                        if v["missed"] else "") for m, v in row.items()]
@@ -249,7 +248,19 @@ def student_check(doc: dict) -> str:
         default = check["default_sampler"]
         lines.append(f"- Speed: {check['speedup_over_default']:.1f}x the generator's own sampler in that run "
                      f"({default['sampler']} x {default['steps']}) in seconds per scan ({doc['device']}).")
-    return "\n".join(lines)
+    return lines
+
+
+def student_check(doc: dict) -> str:
+    """The sampler study's settings side by side, and the student against the teacher's best."""
+    return "\n".join([sampler_points(doc), "", *_student_lines(doc)])
+
+
+def student_check_short(doc: dict) -> str:
+    """The student's row and its check alone (NAME.short): for runs whose teacher rows another
+    block of the page already shows."""
+    own = {**doc, "points": [p for p in doc["points"] if p["sampler"] == "student"]}
+    return "\n".join([sampler_points(own), "", *_student_lines(doc, teacher_settings=False)])
 
 
 def sampler_grid(doc: dict) -> str:
@@ -407,7 +418,7 @@ PREFIXES = {"bench_": benchmark, "student_": student_check, "samplers_": sampler
             "run_cost_": run_cost}
 
 
-SHORT = {run_cost: run_cost_short, gda_decomposition: strength_short}  # NAME.short: the same file, briefly
+SHORT = {run_cost: run_cost_short, gda_decomposition: strength_short, student_check: student_check_short}  # NAME.short: the same file, briefly
 
 
 def render_page(text: str, results: Path, page: str | Path | None = None) -> str:
