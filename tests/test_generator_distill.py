@@ -494,6 +494,27 @@ def test_the_one_step_recipe_distils_a_calibrated_pruned_student_and_checks_it_o
     assert (tradeoff["tradeoff"]["scans"], tradeoff["tradeoff"]["seed_groups"]) == (12, 4)
 
 
+def test_the_best_teacher_check_on_every_domain_samples_its_settings_in_each(tmp_path):
+    """config/student_1step_best_teacher_8domains.yaml: the best-teacher check's settings and the
+    recipe's student in every domain the generator knows, instead of three."""
+    wf = copy_workflow(tmp_path)
+    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
+            "config/student_1step_best_teacher.yaml")
+
+    def check(*overlay):
+        out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args, *overlay).stdout
+        tradeoff = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])["tradeoff"]
+        return tradeoff, set(re.findall(r"--samples ([\w-]+)/(\w+)=", out))
+
+    three, given_three = check()
+    every, given_every = check("config/student_1step_best_teacher_8domains.yaml")
+    assert every["domains"] == [] and every["samplers"] == three["samplers"]
+    settings = {s for s, _ in given_three}
+    assert {d for _, d in given_three} == set(three["domains"]) and "student-1" in settings
+    domains = {d for _, d in given_every}
+    assert domains > set(three["domains"]) and given_every == {(s, d) for s in settings for d in domains}
+
+
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
     """diffusion.prior domain_mean: a student of another width, which cannot load its teacher's state,
     still takes the teacher's domain means, so both denoise the same residual."""
