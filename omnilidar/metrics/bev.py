@@ -292,27 +292,17 @@ def mmd_squared(x: np.ndarray, y: np.ndarray, sigma: float = MMD_SIGMA) -> float
     return max(t["within_x"] + t["within_y"] - 2.0 * t["across"], 0.0)
 
 
-def _normalised_pair(hists_a, hists_b) -> tuple[np.ndarray, np.ndarray]:
-    """Both sets' per-scan normalised histograms on the cells some scan of either uses (cells
-    empty in every scan of both sets add nothing to any distance)."""
-    a, _ = normalise_per_scan(hists_a, "set A")
-    b, _ = normalise_per_scan(hists_b, "set B")
-    if a.shape[1] != b.shape[1]:
-        raise InputError(None, f"histogram sizes differ: {a.shape[1]} and {b.shape[1]} cells")
-    used = (a > 0).any(axis=0) | (b > 0).any(axis=0)
-    return np.ascontiguousarray(a[:, used]), np.ascontiguousarray(b[:, used])
-
-
 def bev_mmd(hists_a, hists_b, *, sigma: float = MMD_SIGMA) -> float:
     """BEV MMD (raw value; multiply by ``MMD_REPORT_SCALE`` for the papers'
     x1e-4 units) between two sets of per-scan histograms. Empty scans are left
     out (see module docstring); ``bev_scores`` reports how many."""
-    return mmd_squared(*_normalised_pair(hists_a, hists_b), sigma)
-
-
-def bev_mmd_terms(hists_a, hists_b, *, sigma: float = MMD_SIGMA) -> dict[str, float]:
-    """:func:`mmd_terms` of :func:`bev_mmd` (set A is x): where a set's MMD comes from."""
-    return mmd_terms(*_normalised_pair(hists_a, hists_b), sigma)
+    a, _ = normalise_per_scan(hists_a, "set A")
+    b, _ = normalise_per_scan(hists_b, "set B")
+    if a.shape[1] != b.shape[1]:
+        raise InputError(None, f"histogram sizes differ: {a.shape[1]} and {b.shape[1]} cells")
+    # Cells empty in every scan of both sets add nothing to any distance: drop them.
+    used = (a > 0).any(axis=0) | (b > 0).any(axis=0)
+    return mmd_squared(np.ascontiguousarray(a[:, used]), np.ascontiguousarray(b[:, used]), sigma)
 
 
 def between_scan_distance(hists, other=None) -> float:
