@@ -219,11 +219,47 @@ def domain_label(name):
     return config["domains"][name]["label"]
 
 
+def domains_settings():
+    """The domains section as the domain stage's jobs read it: without each domain's
+    heldout_split, which only its held-out set reads (naming one rebuilds nothing else)."""
+    return json.dumps({k: _without_heldout(v) for k, v in config["domains"].items()}, sort_keys=True)
+
+
+def _without_heldout(entry):
+    return {k: v for k, v in entry.items() if k != "heldout_split"} if isinstance(entry, dict) else entry
+
+
 def domain_settings(name):
     """What one domain's build reads: its own entry and the image geometry, so that
     editing another domain's effects does not rebuild this one."""
     section = config["domains"]
-    return json.dumps({"range_image": section["range_image"], name: section[name]}, sort_keys=True)
+    return json.dumps({"range_image": section["range_image"], name: _without_heldout(section[name])}, sort_keys=True)
+
+
+def _heldout_entry(name):
+    """One domain's held-out reference set: its entry on its heldout_split, in one shard."""
+    return _without_heldout(config["domains"][name]) | {"split": heldout_split(name), "num_shards": 1}
+
+
+def heldout_domain_settings(name):
+    """What one domain's held-out build reads (as domain_settings)."""
+    return json.dumps({"range_image": config["domains"]["range_image"], name: _heldout_entry(name)}, sort_keys=True)
+
+
+def heldout_domains_settings():
+    """The domains section as the held-out sets' index reads it."""
+    return json.dumps({k: _heldout_entry(k) if k in DOMAIN_NAMES else _without_heldout(v)
+                       for k, v in config["domains"].items()}, sort_keys=True)
+
+
+def heldout_split(name):
+    """The split a domain's held-out set comes from; a config error if it has none or its training split."""
+    entry = config["domains"][name]
+    split = entry.get("heldout_split")
+    if not split or split == entry["split"]:
+        sys.exit(f"Invalid configuration: domains.{name}.heldout_split is {split!r} (training split {entry['split']!r}); "
+                 "evaluation.tradeoff.reference: heldout needs a held-out split of the domain's source for every domain")
+    return split
 
 
 def domain_code(name):

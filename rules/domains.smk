@@ -2,6 +2,8 @@
 # files, the SemanticKITTI-C-style corrupted sets, and the effect reports.
 
 DOMAINS = f"{DATA}/domains"
+# Each domain's held-out reference set (its heldout_split), the sampler study's real scans.
+HELDOUT_DOMAINS = f"{DATA}/domains_heldout"
 # CORRUPTED (the corrupted sets' folder) is in rules/common.smk, whose helpers name it.
 
 
@@ -60,7 +62,7 @@ rule domains_index:
     output:
         f"{DOMAINS}/index.json",
     params:
-        settings=settings("domains"),
+        settings=domains_settings(),
         code=code("domains-index"),
     log:
         "logs/domains/index.log",
@@ -75,6 +77,53 @@ rule domains_index:
         "omnilidar domains-index --settings {params.settings:q} --out {output} {input} > {log} 2>&1"
 
 
+rule build_heldout_domain:
+    """A domain's held-out reference set: its scene spec on its heldout_split (scans the generator
+    never trains on), the real scans the sampler study scores every setting against."""
+    input:
+        lambda w: f"{DATA}/index/{config['domains'][w.domain]['dataset']}.json",
+    output:
+        directory(f"{HELDOUT_DOMAINS}/{{domain}}/shard_0"),
+    wildcard_constraints:
+        domain="|".join(DOMAIN_NAMES),
+    params:
+        settings=lambda w: heldout_domain_settings(w.domain),
+        seed=config["seed"],
+        code=lambda w: domain_code(w.domain),
+    log:
+        f"logs/domains_heldout/{{domain}}.log",
+    benchmark:
+        f"benchmarks/out/domains_heldout/{{domain}}.tsv"
+    conda:
+        ENV
+    resources:
+        **job_resources("build_heldout_domain"),
+    shell:
+        "omnilidar build-domain {wildcards.domain} --index {input} --shard 0 --num-shards 1 "
+        "--settings {params.settings:q} --seed {params.seed} --out {output} > {log} 2>&1"
+
+
+rule heldout_domains_index:
+    """Which shard directory holds each domain's held-out set."""
+    input:
+        [f"{HELDOUT_DOMAINS}/{name}/shard_0" for name in DOMAIN_NAMES],
+    output:
+        f"{HELDOUT_DOMAINS}/index.json",
+    params:
+        settings=lambda w: heldout_domains_settings(),
+        code=code("domains-index"),
+    log:
+        "logs/domains_heldout/index.log",
+    benchmark:
+        "benchmarks/out/domains_heldout/index.tsv"
+    conda:
+        ENV
+    resources:
+        **job_resources("heldout_domains_index"),
+    shell:
+        "omnilidar domains-index --settings {params.settings:q} --out {output} {input} > {log} 2>&1"
+
+
 rule build_corrupted:
     """One SemanticKITTI-C-style set: a corruption at a fixed severity on the val split."""
     input:
@@ -85,7 +134,7 @@ rule build_corrupted:
         corruption=r"fog|wet_ground|snow|beam_missing",
         severity=r"light|moderate|heavy",
     params:
-        settings=settings("domains"),
+        settings=domains_settings(),
         seed=config["seed"],
         code=code("build-corrupted"),
     log:
@@ -112,7 +161,7 @@ rule domain_fidelity:
         table="results/tables/domain_fidelity.html",
         figure="results/figures/domain_fidelity.png",
     params:
-        settings=settings("domains"),
+        settings=domains_settings(),
         seed=config["seed"],
         code=result_code("domain-fidelity"),
         index=lambda w, input: f"--index {input.index}" if input.index else "",
@@ -141,7 +190,7 @@ rule effects_tradeoff:
         table="results/tables/effects_tradeoff.html",
         figure="results/figures/effects_tradeoff.png",
     params:
-        settings=settings("domains"),
+        settings=domains_settings(),
         seed=config["seed"],
         code=result_code("effects-tradeoff"),
         index=lambda w, input: f"--index {input.index}" if input.index else "",

@@ -239,6 +239,8 @@ rule sampler_tradeoff:
     against the compute of generated scans (results/gda_curve.json)."""
     input:
         domains=f"{DATA}/domains/index.json",
+        # The real scans: each domain's held-out set, or (reference: training) its training scans.
+        reference=f"{HELDOUT_DOMAINS if EVAL['tradeoff']['reference'] == 'heldout' else DOMAINS}/index.json",
         prompts=rules.encode_prompts.output,
         checkpoint=f"{GENERATOR}/full/model.pt",
         effects="results/effects_tradeoff.json",
@@ -269,7 +271,7 @@ rule sampler_tradeoff:
         **job_resources("sampler_tradeoff"),
     shell:
         with_table(
-            "omnilidar sampler-tradeoff --domains {input.domains} --prompts {input.prompts} "
+            "omnilidar sampler-tradeoff --domains {input.domains} --reference {input.reference} --prompts {input.prompts} "
             "--checkpoint {input.checkpoint} {params.student} {params.weights} {params.samples} --effects {input.effects} "
             "{params.curve} --settings {params.settings:q} --seed {params.seed} --data-source {params.data_source:q} "
             "--out {output.json} --figure {output.figure} > {log} 2>&1"

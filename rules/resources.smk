@@ -243,6 +243,8 @@ _RULES = {
     "data_summary": (False, 4000, 30, 1),
     "build_domain": (False, 3000, 60, 1),
     "domains_index": (False, 500, 5, 1),
+    "build_heldout_domain": (False, 3000, 60, 1),
+    "heldout_domains_index": (False, 500, 5, 1),
     "build_corrupted": (False, 3000, 60, 1),
     "domain_fidelity": (False, 4000, 30, 1),
     "effects_tradeoff": (False, 4000, 60, 1),

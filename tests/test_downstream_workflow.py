@@ -170,6 +170,14 @@ def test_downstream_change_reruns_only_runs_and_evaluation(completed):
                          "evaluate_segmentor", "semkitti_result"}  # two seeds per run
 
 
+def test_naming_another_held_out_split_rebuilds_nothing_of_the_gda_chain(completed):
+    """heldout_split is read only by the held-out sets (the sampler study's real scans): the domain
+    builds, the generator and every run stay as they are."""
+    wd, cfg = completed
+    assert _with_change(wd, cfg, {"domains.fog.heldout_split": "test"}) == {}
+    assert "build_domain" in _with_change(wd, cfg, {"domains.fog.split": "val"})  # the check can fail
+
+
 def test_mixing_change_reruns_only_gda_runs(completed):
     wd, cfg = completed
     jobs = _with_change(wd, cfg, {"downstream.mixing.mode": "ratio"})

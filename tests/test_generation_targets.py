@@ -196,6 +196,59 @@ def test_sampler_tradeoff_one_run(fixture_dir):
     assert (r / "t.png").stat().st_size > 1000
 
 
+def _domains_tree(root: Path, images: dict[str, list[np.ndarray]], dataset: str, split: str) -> Path:
+    """A domains index over ``images`` ({domain: [(2, H, W)]}) whose shards say where they come from."""
+    index = {"domains": {}}
+    for k, (dom, imgs) in enumerate(images.items()):
+        shard = root / dom / "shard_0"
+        (shard / "range").mkdir(parents=True)
+        for i, img in enumerate(imgs):
+            np.savez(shard / "range" / f"{i:06d}.npz", image=img)
+        (shard / "sidecar.json").write_text(json.dumps({"dataset": dataset, "split": split}))
+        index["domains"][dom] = {"id": k, "name": dom.lower(), "num_scans": len(imgs), "shards": [f"{dom}/shard_0"]}
+    (root / "index.json").write_text(json.dumps(index))
+    return root / "index.json"
+
+
+def test_sampler_tradeoff_scores_against_the_reference_scans_and_says_whether_they_are_held_out(fixture_dir, tmp_path):
+    """--reference gives the real scans (a held-out set), --domains stays the training scans: the
+    scores change with the reference alone, and the result names both sources; a reference from the
+    training split itself is not called held out."""
+    from omnilidar.generator.data import load_range_image, read_domains_index
+
+    r = fixture_dir
+    train_imgs = [load_range_image(f) for f in read_domains_index(r / "index.json")["Vehicle"]["files"]]
+    held = [img.copy() for img in train_imgs]
+    for img in held:  # other scenes: the far half of every row gone
+        img[:, :, : img.shape[2] // 2] = -1.0
+    training = _domains_tree(tmp_path / "train", {"Vehicle": train_imgs}, "semantickitti", "train")
+    heldout = _domains_tree(tmp_path / "heldout", {"Vehicle": held}, "semantickitti", "val")
+    same_split = _domains_tree(tmp_path / "same", {"Vehicle": held}, "semantickitti", "train")
+    settings = _settings(tradeoff={"samplers": {"ddim": [1]}, "scans": 2, "seed_groups": 1, "student": False,
+                                   "domains": ["Vehicle"], "feature_metrics": ["FRID"]})
+
+    def study(name, *reference):
+        out = tmp_path / f"{name}.json"
+        assert main(["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", str(training), *reference,
+                     "--prompts", str(r / "prompts.pt"), "--checkpoint", str(r / "model.pt"),
+                     "--weights", f"frid={r / 'frid.pt'}",
+                     "--settings", settings, "--out", str(out), "--figure", str(tmp_path / f"{name}.png")]) == 0
+        return json.loads(out.read_text())
+
+    own, held_out, same = study("own"), study("held", "--reference", str(heldout)), study("same", "--reference", str(same_split))
+    assert own["reference"] == {"index": str(training), "held_out": False, "sources": {"Vehicle": "semantickitti train"},
+                                "training_sources": {"Vehicle": "semantickitti train"}}
+    assert held_out["reference"]["held_out"] and held_out["reference"]["sources"] == {"Vehicle": "semantickitti val"}
+    assert not same["reference"]["held_out"]
+    # The same generated scans (same seed), other real scans: other scores.
+    assert held_out["points"][0]["mean_JSD"] != pytest.approx(own["points"][0]["mean_JSD"])
+    assert same["points"][0]["mean_JSD"] == pytest.approx(held_out["points"][0]["mean_JSD"])
+    from omnilidar.report.readme import reference_phrase
+
+    assert "2 held-out real scans per domain (semantickitti val)" in reference_phrase(held_out)
+    assert "training scans" in reference_phrase(same) and "training scans" in reference_phrase({"real_scans": 8})
+
+
 def test_every_teacher_setting_is_held_to_the_best_by_the_student_s_rule():
     from omnilidar.commands.sampler_tradeoff import teacher_settings_check
 
@@ -241,6 +294,7 @@ def test_workflow_plans_the_evaluation_targets(tmp_path):
     jobs = planned_jobs(work, "results/generation_quality.json", "results/tradeoff.json",
                         "results/generator_evidence.json", "results/kitti360_generation.json", "results/ablation.json")
     assert jobs["generation_quality"] == 1 and jobs["sampler_tradeoff"] == 1 and jobs["generator_evidence"] == 1
+    assert jobs["build_heldout_domain"] == 8 and jobs["heldout_domains_index"] == 1  # the study's real scans
     assert jobs["train_single_domain"] == 8  # one R2DM-equivalent baseline per domain
     assert jobs["train_extractor"] == 5  # every feature metric self-trained by default
     assert jobs["train_generator"] == 6  # the six ablation presets (full among them)
@@ -269,6 +323,35 @@ def test_single_domain_baselines_train_as_long_as_the_full_model_unless_told(tmp
 
     assert baseline_iterations() == full
     assert baseline_iterations("--configfile", "config/config.yaml", "short.yaml") == 7
+
+
+def test_the_sampler_study_scores_against_held_out_sets_built_on_each_domain_s_heldout_split(tmp_path):
+    """Each domain's held-out set is its scene spec on its heldout_split in one shard; the training
+    builds do not read heldout_split; reference: training scores against the training index and
+    builds no held-out set; a held-out split equal to the training split is a config error."""
+    import re
+
+    from tests.workflow_helpers import copy_workflow, planned_jobs, snakemake
+
+    work = copy_workflow(tmp_path)
+    out = snakemake(work, "--dry-run", "--printshellcmds", "--forceall", "results/tradeoff.json").stdout
+    builds = re.findall(r"omnilidar build-domain (\w+) .*?--num-shards (\d+) --settings '(\{.*?\})' .*?--out (\S+)", out)
+    heldout = {name: (n, json.loads(cfg)[name]) for name, n, cfg, dest in builds if "domains_heldout" in dest}
+    training = {name: json.loads(cfg)[name] for name, n, cfg, dest in builds if "domains_heldout" not in dest}
+    assert set(heldout) == set(training) == {"vehicle", "snow", "fog", "rain", "wet_ground", "beam32", "drone", "quadruped"}
+    assert heldout["drone"][0] == "1" and heldout["drone"][1]["split"] == "drone_val" and heldout["fog"][1]["split"] == "val"
+    assert heldout["fog"][1]["effects"] == training["fog"]["effects"] and training["fog"]["split"] == "train"
+    assert not any("heldout_split" in entry for entry in training.values())
+    study = re.search(r"omnilidar sampler-tradeoff --domains (\S+) --reference (\S+) ", out)
+    assert study.groups() == ("data/domains/index.json", "data/domains_heldout/index.json")
+    (work / "own.yaml").write_text("evaluation: {tradeoff: {reference: training}}\n")
+    own = ("--configfile", "config/config.yaml", "own.yaml")
+    assert "--reference data/domains/index.json" in snakemake(work, "--dry-run", "--printshellcmds", "--forceall",
+                                                              "results/tradeoff.json", *own).stdout
+    assert "build_heldout_domain" not in planned_jobs(work, "--forceall", "results/tradeoff.json", *own)
+    (work / "same.yaml").write_text("domains: {fog: {heldout_split: train}}\n")
+    bad = snakemake(work, "--dry-run", "results/tradeoff.json", "--configfile", "config/config.yaml", "same.yaml", check=False)
+    assert bad.returncode != 0 and "domains.fog.heldout_split" in bad.stdout + bad.stderr
 
 
 def test_generation_quality_reads_sample_shards_as_it_would_sample(fixture_dir, tmp_path):

@@ -16,7 +16,10 @@ def add_arguments(parser) -> None:
     settings_arg(parser)
     data_source_arg(parser)
     seed_arg(parser)
-    parser.add_argument("--domains", required=True)
+    parser.add_argument("--domains", required=True, help="the generator's training domains index")
+    parser.add_argument("--reference", default=None,
+                        help="domains index of the real scans every setting is scored against (each domain's "
+                             "held-out set, data/domains_heldout/index.json); default: --domains, the training scans")
     parser.add_argument("--prompts", required=True)
     parser.add_argument("--checkpoint", required=True, help="full OmniLiDAR checkpoint")
     parser.add_argument("--student", default=None, help="its distilled student (with evaluation.tradeoff.student)")
@@ -61,6 +64,17 @@ def describe_student(path: str, payload: dict) -> dict:
     return {"checkpoint": str(path), **payload["student"], "seed": payload.get("seed"),
             "distillation": payload["config"].get("distillation"),
             "provenance_hash": provenance_hash(payload["provenance"]) if payload.get("provenance") else None}
+
+
+def reference_record(reference, training, domains: list[str]) -> dict:
+    """Which real scans the study scores against: the index, each domain's source ("<dataset>
+    <split>") beside the generator's training source, and held_out, true only where every domain's
+    reference comes from another split than its training scans."""
+    from omnilidar.metrics.generation import domain_sources
+
+    sources, trained = domain_sources(reference, domains), domain_sources(training, domains)
+    held_out = all(sources[d] is not None and trained[d] is not None and sources[d] != trained[d] for d in domains)
+    return {"index": str(reference), "held_out": held_out, "sources": sources, "training_sources": trained}
 
 
 def downstream_curve(path) -> tuple[list[dict], dict | None]:
@@ -232,7 +246,8 @@ def run(args) -> int:
     cache = load_prompt_cache(args.prompts)
     sets = parse_sample_sets(args.samples)
     domains = cfg["domains"] or list(payload["domains"])
-    real = {d: set_features(real_domain_images(args.domains, d, spec.shape, settings["scans_per_set"]), spec,
+    reference = reference_record(args.reference or args.domains, args.domains, domains)
+    real = {d: set_features(real_domain_images(reference["index"], d, spec.shape, settings["scans_per_set"]), spec,
                             extractors, settings["batch_size"], f"real {d}") for d in domains}
     # One untimed step so that lazy initialisation is not charged to the first setting.
     if not sets:
@@ -293,7 +308,7 @@ def run(args) -> int:
         {"sampling_study": time.perf_counter() - t_all}, args.data_source,
         device_note="timings measured in this one run on the device named above",
         feature_metrics=feats, metrics=metrics, domains=domains, scans_per_setting=cfg["scans"],
-        real_scans=settings["scans_per_set"], weights=w, comparable_with_paper=comparable, points=points,
+        real_scans=settings["scans_per_set"], reference=reference, weights=w, comparable_with_paper=comparable, points=points,
         best_per_budget=best_per_budget(points, metrics), recommended=recommended,
         student_check=student_check(points, metrics, default),
         teacher_settings_check=teacher_settings_check(points, metrics),

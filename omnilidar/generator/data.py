@@ -39,7 +39,8 @@ def rng_for(*keys: int) -> np.random.Generator:
 
 
 def read_domains_index(path: str | Path) -> dict[str, dict]:
-    """Parse the domains index; return {name: {"id": int, "files": [Path, ...]}} sorted by id."""
+    """Parse the domains index; return {name: {"id": int, "files": [Path, ...], "shard_dirs": [Path, ...]}}
+    sorted by id."""
     path = Path(path)
     index = read_json(path, "domains index not found")
     domains = index.get("domains") if isinstance(index, dict) else None
@@ -56,7 +57,7 @@ def read_domains_index(path: str | Path) -> dict[str, dict]:
         ids[entry["id"]] = name
     out = {}
     for name, entry in domains.items():
-        files = []
+        files, shard_dirs = [], []
         for shard in entry["shards"]:
             shard_dir = Path(shard)
             if not shard_dir.is_absolute() and (path.parent / shard_dir).is_dir():
@@ -64,9 +65,10 @@ def read_domains_index(path: str | Path) -> dict[str, dict]:
             if not shard_dir.is_dir():
                 raise InputError(path, f"domain {name}: shard directory {shard} not found")
             files.extend(sorted(shard_dir.rglob("*.npz")))
+            shard_dirs.append(shard_dir)
         if not files:
             raise InputError(path, f"domain {name}: no .npz range images under its shards")
-        out[name] = {"id": entry["id"], "files": files}
+        out[name] = {"id": entry["id"], "files": files, "shard_dirs": shard_dirs}
         if isinstance(entry.get("range_image"), dict):  # the geometry the builder used
             out[name]["range_image"] = entry["range_image"]
     return dict(sorted(out.items(), key=lambda kv: kv[1]["id"]))

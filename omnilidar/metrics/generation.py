@@ -128,6 +128,27 @@ def real_domain_images(domains_index, domain: str, shape: tuple[int, int], limit
     return np.stack([load_range_image(f, shape) for f in files])
 
 
+def domain_sources(domains_index, domains: list[str]) -> dict[str, str | None]:
+    """Where each domain's built scans come from, "<dataset> <split>" (the shards' sidecars; several
+    splits joined by "+"), or None where a shard has no sidecar that says."""
+    import json
+
+    from omnilidar.generator.data import read_domains_index
+
+    index = read_domains_index(domains_index)
+    out = {}
+    for domain in domains:
+        if domain not in index:
+            raise InputError(domains_index, f"no domain {domain!r} (built: {', '.join(index)})")
+        found = set()
+        for shard_dir in index[domain]["shard_dirs"]:
+            sidecar = shard_dir / "sidecar.json"
+            side = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+            found.add(f"{side['dataset']} {side['split']}" if "dataset" in side and "split" in side else None)
+        out[domain] = None if None in found else "+".join(sorted(found))
+    return out
+
+
 def dataset_images(index_path, split: str, spec: RangeImageSpec, limit: int) -> np.ndarray:
     """Up to ``limit`` scans of a dataset split (index JSON), projected to range images."""
     from omnilidar.data.index import read_index

@@ -223,8 +223,18 @@ def sampler_points(doc: dict) -> str:
         cells = [f"{p[f'mean_{m}']:.4g} +- {p[f'std_{m}']:.2g}" for m in metrics]
         lines.append(f"| {p['sampler']} | {p['network_evaluations']} | {p['seconds_per_scan']:.3f} | "
                      + " | ".join(cells) + " |")
-    return "\n".join(lines + ["", f"Domains {', '.join(doc['domains'])}; mean over {doc['seeds']['seed_groups']} "
-                                   f"groups of scans with distinct sampling seeds +- their spread; {doc['device']}."])
+    return "\n".join(lines + ["", f"Domains {', '.join(doc['domains'])}, {reference_phrase(doc)}; mean over "
+                                   f"{doc['seeds']['seed_groups']} groups of scans with distinct sampling seeds +- their "
+                                   f"spread; {doc['device']}."])
+
+
+def reference_phrase(doc: dict) -> str:
+    """Which real scans a sampler study scored against (results without a reference record predate
+    the held-out sets and scored against the generator's training scans)."""
+    ref, n = doc.get("reference"), doc.get("real_scans")
+    if ref and ref.get("held_out"):
+        return f"scored against {n} held-out real scans per domain ({', '.join(sorted(set(ref['sources'].values())))})"
+    return f"scored against {n} of each domain's training scans (the generator's own)"
 
 
 def _student_lines(doc: dict, teacher_settings: bool = True) -> list[str]:
