@@ -7,7 +7,7 @@ import sys
 from omnilidar.config import validate, workflow_file
 from omnilidar.data_source import describe as describe_sources, mixed as sources_mixed, record as data_source_record
 from omnilidar.errors import InputError
-from omnilidar.generator.distill_steps import (calibration_sampler, distillation_iterations, last_round_extra_steps,
+from omnilidar.generator.distill_steps import (calibration_samplers, distillation_iterations, last_round_extra_steps,
                                                student_steps, teacher_substep_extra_steps)
 from omnilidar.manifest import listing_digest
 from omnilidar.provenance import code_manifest, command_code_hash, command_modules, package_versions

@@ -263,7 +263,7 @@ _RULES = {
                                                   + last_round_extra_steps(_DISTILL)
                                                   + teacher_substep_extra_steps(_DISTILL)) * 5 / 3
                                    + sampling_seconds(len(DOMAIN_NAMES) * _DISTILL["return_calibration"],
-                                                      calibration_sampler(_DISTILL)[1] + STUDENT_STEPS)),
+                                                      sum(n for _, n in calibration_samplers(_DISTILL)) + STUDENT_STEPS)),
                           _GEN_TRAIN["num_workers"] + 1),
     "sample_domain": (config["generator"]["sampling"]["device"],
                       _generator_sample_work(config["generator"]["sampling"]["batch_size"]),

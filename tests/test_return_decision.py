@@ -117,6 +117,71 @@ def test_calibrating_a_finished_distillation_again_resumes_it_and_does_not_disti
     assert fresh["resumed_from"] == 0 and fresh["iterations"] > plain["iterations"]
 
 
+def test_of_several_calibration_settings_the_one_closest_to_the_training_scans_is_taken():
+    """BEV JSD and MMD against the reference scans, each relative to the best candidate's: the
+    reference's own scans win over the same scans with the lower half of their rows dropped, in
+    either order."""
+    from omnilidar.generator.return_decision import closest_setting
+    from omnilidar.generator.unet import range_image_spec
+    from test_generation_targets import tiny_generator_settings
+
+    spec = range_image_spec(tiny_generator_settings())
+    rng = np.random.default_rng(0)
+    h, w = spec.shape
+    reference = np.stack([np.stack([rng.uniform(-0.6, 0.6, (h, w)), rng.uniform(-1, 1, (h, w))]) for _ in range(4)])
+    sparse = reference.copy()
+    sparse[:, :, h // 2:] = -1.0
+    for order in (("own", "sparse"), ("sparse", "own")):
+        pick, scores = closest_setting({k: {"own": reference[::-1].copy(), "sparse": sparse}[k] for k in order},
+                                       reference, spec)
+        assert pick == "own" and scores["own"]["MMD"] < scores["sparse"]["MMD"] and scores["own"]["JSD"] < 1e-6
+
+
+def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_the_closest(teacher, tmp_path):
+    """calibration_sampler as a list: each domain's return decision and range map are fitted on the
+    candidate whose scans lie closest to its training scans, the checkpoint says which, and the
+    distillation is calibrated again without distilling again."""
+    import shutil
+
+    from omnilidar.generator.data import load_range_image, read_domains_index
+    from omnilidar.generator.return_decision import closest_setting
+    from omnilidar.generator.unet import range_image_spec
+
+    root, settings, index, prompts, plain = teacher
+    work = tmp_path / "work"
+    shutil.copytree(root / "student_work", work)
+    calibrated = copy.deepcopy(settings)
+    candidates = [("ddpm", 3), ("ddim", 4)]
+    calibrated["distillation"].update(return_calibration=4, range_calibration=3,
+                                      calibration_sampler=[{"sampler": n, "steps": k} for n, k in candidates])
+    again = train_generator(calibrated, index, prompts, work, tmp_path / "student.pt", seed=3, teacher=root / "model.pt")
+    assert again["resumed_from"] == plain["iterations"] == again["iterations"]
+    payload = torch.load(tmp_path / "student.pt", weights_only=True)
+    choice = payload["student"]["calibration_sampler"]
+    assert set(choice) == set(TINY_DOMAINS) and set(choice.values()) <= {"ddpm:3", "ddim:4"}
+    gen, _ = load_generator(root / "model.pt")
+    cache, domains = load_prompt_cache(prompts), read_domains_index(index)
+    h, w = settings["range_image"]["height"], settings["range_image"]["width"]
+    for d, name in enumerate(TINY_DOMAINS):
+        spec, entry = domain_points_spec(payload["config"], payload, name), cache["domains"][name]
+        drawn = {f"{n}:{k}": generate(gen, d, entry["tokens"][0], entry["mask"][0], calibration_seeds(3, name, 4),
+                                      spec.shape, n, k).numpy() for n, k in candidates}
+        training = np.stack([load_range_image(f, (h, w)) for f in domains[name]["files"]])
+        assert choice[name] == closest_setting(drawn, training, range_image_spec(payload["config"]))[0]
+        # The range map's teacher knots are the chosen setting's quantiles.
+        chosen = drawn[choice[name]]
+        returns = np.stack([decode(img, spec)[2] for img in chosen])
+        for row in range(h):
+            knots = payload["range_map"][d, row].numpy()
+            if not np.array_equal(knots[0], knots[1]):
+                np.testing.assert_allclose(knots[1], np.quantile(chosen[:, 0, row][returns[:, row]], np.linspace(0, 1, 3)),
+                                           rtol=1e-5, atol=1e-6)
+    twice = copy.deepcopy(calibrated)
+    twice["distillation"]["calibration_sampler"] = [{"sampler": "ddpm", "steps": 3}] * 2
+    with pytest.raises(InputError, match="names a setting twice"):
+        train_generator(twice, index, prompts, tmp_path / "twice", tmp_path / "twice.pt", seed=3, teacher=root / "model.pt")
+
+
 def test_a_checkpoint_whose_thresholds_do_not_fit_its_image_is_one_clear_error(teacher, tmp_path):
     root = teacher[0]
     payload = torch.load(root / "student.pt", weights_only=True)

@@ -101,14 +101,15 @@ def teacher_sampler_steps(distillation: dict) -> int:
     return int(distillation["teacher_steps"]) * int(distillation.get("teacher_substeps") or 1)
 
 
-def calibration_sampler(distillation: dict) -> tuple[str, int]:
-    """(sampler, steps) of the trained generator on whose scans the finished student's returns and
-    ranges are calibrated: ``calibration_sampler`` where set, else the DDIM path the student learnt
-    (on the distillation's spacing, ``teacher_steps`` x ``teacher_substeps``)."""
+def calibration_samplers(distillation: dict) -> list[tuple[str, int]]:
+    """[(sampler, steps)] of the trained generator on whose scans the finished student's returns and
+    ranges are calibrated: ``calibration_sampler`` where set (one setting, or candidates of which
+    each domain takes the one whose scans lie closest to its training scans), else the DDIM path the
+    student learnt (on the distillation's spacing, ``teacher_steps`` x ``teacher_substeps``)."""
     chosen = distillation.get("calibration_sampler")
     if chosen:
-        return str(chosen["sampler"]), int(chosen["steps"])
-    return student_sampler(distillation), teacher_sampler_steps(distillation)
+        return [(str(c["sampler"]), int(c["steps"])) for c in (chosen if isinstance(chosen, list) else [chosen])]
+    return [(student_sampler(distillation), teacher_sampler_steps(distillation))]
 
 
 # One more pass of the trained generator, in distillation steps without it: measured in the job log

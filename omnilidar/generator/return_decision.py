@@ -32,7 +32,7 @@ import torch
 
 from omnilidar.generator.data import rng_for
 from omnilidar.generator.diffusion import generate
-from omnilidar.generator.distill_steps import calibration_sampler, student_sampler, student_steps
+from omnilidar.generator.distill_steps import calibration_samplers, student_sampler, student_steps
 
 CALIBRATION_STREAM = 0xCA1B
 
@@ -73,35 +73,78 @@ def row_range_knots(student_range: np.ndarray, student_returns: np.ndarray, teac
     return out
 
 
+# Training scans per domain against which calibration candidates are compared (the first ones).
+REFERENCE_SCANS = 64
+
+
+def calibration_references(domains: dict[str, dict], distillation: dict, shape: tuple[int, int]) -> dict | None:
+    """{domain: (N, 2, H, W)} the first training scans of each domain (read_domains_index's entries),
+    where ``calibration_sampler`` names several candidates to choose between; else None."""
+    if len(calibration_samplers(distillation)) < 2 or not int(distillation.get("return_calibration") or 0):
+        return None
+    from omnilidar.generator.data import load_range_image
+
+    return {name: np.stack([load_range_image(f, shape) for f in entry["files"][:REFERENCE_SCANS]])
+            for name, entry in domains.items()}
+
+
+def closest_setting(candidates: dict[str, np.ndarray], reference: np.ndarray, spec) -> tuple[str, dict]:
+    """The label of the candidate scan set (each (N, 2, H, W)) closest to ``reference``'s scans, and
+    every candidate's BEV JSD and MMD against them: the lowest sum of each metric relative to its
+    best, so that both count alike."""
+    from omnilidar.metrics.generation import compare, set_features
+
+    real = set_features(reference, spec, {}, 8, "reference")
+    scores = {label: {m: compare(real, set_features(images, spec, {}, 8, label), {})[m] for m in ("JSD", "MMD")}
+              for label, images in candidates.items()}
+    best = {m: min(s[m] for s in scores.values()) for m in ("JSD", "MMD")}
+    pick = min(scores, key=lambda label: sum(scores[label][m] / max(best[m], 1e-12) for m in best))
+    return pick, scores
+
+
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
-                      seed: int, batch: int = 8, log=print) -> dict[str, torch.Tensor]:
+                      seed: int, references: dict | None = None, batch: int = 8, log=print) -> dict:
     """The student's calibration against ``teacher`` (the trained generator with DDIM x
     ``teacher_steps`` x ``teacher_substeps``, the sampler the student learnt, on the distillation's
     spacing, or with ``calibration_sampler``) on ``return_calibration`` seeded scans per domain:
     ``return_thresholds`` (domains, H) float32, and with ``range_calibration`` K > 0 ``range_map``
     (domains, H, 2, K) float32 of the thresholded student's returns; ``payload``: the student's checkpoint contents (its settings,
-    domains and their back-projection geometry)."""
+    domains and their back-projection geometry). With several candidate settings, each domain is
+    calibrated on the candidate whose scans lie closest to its training scans ``references``
+    (:func:`calibration_references`; BEV JSD and MMD, :func:`closest_setting`), and
+    ``calibration_choice`` says which ({domain: "sampler:steps"})."""
     from omnilidar.data.range_image import decode
     from omnilidar.generator.sampling import domain_points_spec
     from omnilidar.generator.schedule import CosineLogSNRSchedule
+    from omnilidar.generator.unet import range_image_spec
 
     settings = payload["config"]
     distillation, d = settings["distillation"], settings["diffusion"]
     schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
     scans, sampler = int(distillation["return_calibration"]), student_sampler(distillation)
-    teacher_sampler, teacher_steps = calibration_sampler(distillation)
+    candidates = calibration_samplers(distillation)
+    if len(candidates) > 1 and not references:
+        raise ValueError("several calibration candidates need each domain's training scans to choose between them")
     knots = int(distillation.get("range_calibration") or 0)
     student, teacher = student.eval(), teacher.eval()
-    out, maps = [], []
+    out, maps, choice = [], [], {}
     for index, name in enumerate(payload["domains"]):
         spec, entry = domain_points_spec(settings, payload, name), prompt_cache["domains"][name]
         seeds = calibration_seeds(seed, name, scans)
-        sampled = {}
-        for who, net, how, steps in (("teacher", teacher, teacher_sampler, teacher_steps),
-                                     ("student", student, sampler, student_steps(distillation))):
-            sampled[who] = np.concatenate([
+
+        def draw(net, how, steps):
+            return np.concatenate([
                 generate(net, index, entry["tokens"][0], entry["mask"][0], seeds[i:i + batch], spec.shape, how,
                          steps, schedule).numpy() for i in range(0, scans, batch)])
+
+        drawn = {f"{how}:{steps}": draw(teacher, how, steps) for how, steps in candidates}
+        choice[name] = next(iter(drawn))
+        if len(drawn) > 1:
+            choice[name], scores = closest_setting(drawn, references[name], range_image_spec(settings))
+            log(f"calibration candidates {name} against its training scans: "
+                + ", ".join(f"{k} JSD {v['JSD']:.4f} MMD {v['MMD'] * 1e4:.2f}e-4" for k, v in scores.items())
+                + f"; calibrated on {choice[name]}")
+        sampled = {"teacher": drawn[choice[name]], "student": draw(student, sampler, student_steps(distillation))}
         returns = {who: np.stack([decode(img, spec)[2] for img in images]) for who, images in sampled.items()}
         out.append(row_thresholds(sampled["student"][:, 0], returns["student"], returns["teacher"]))
         log(f"return calibration {name}: returns {returns['teacher'].mean():.3f} (teacher), "
@@ -114,7 +157,7 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
                     (("teacher", returns["teacher"]), ("student", kept))}
             log(f"range calibration {name}: mean encoded range of the returns {mean['teacher']:+.3f} (teacher), "
                 f"{mean['student']:+.3f} (student)")
-    calibration = {"return_thresholds": torch.from_numpy(np.stack(out))}
+    calibration = {"return_thresholds": torch.from_numpy(np.stack(out)), "calibration_choice": choice}
     if knots:
         calibration["range_map"] = torch.from_numpy(np.stack(maps))
     return calibration

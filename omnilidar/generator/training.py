@@ -48,11 +48,11 @@ from omnilidar.generator.adversarial import build_critic, critic_loss, fooling_l
 from omnilidar.generator.distill import (compression_loss, consistency_loss, distillation_loss, progressive_pair,
                                          weighted_x0_error)
 from omnilidar.generator.distribution_matching import build_fake_score, fake_score_loss, matching_loss
-from omnilidar.generator.distill_steps import (calibration_sampler, compression_iterations, distillation_iterations,
+from omnilidar.generator.distill_steps import (calibration_samplers, compression_iterations, distillation_iterations,
                                                last_round_terms, res_blocks_per_level, round_at, round_iterations,
                                                round_steps, starts_from_teacher, student_lr, student_model,
                                                student_sampler, student_steps, teacher_sampler_steps)
-from omnilidar.generator.return_decision import calibrate_returns
+from omnilidar.generator.return_decision import calibrate_returns, calibration_references
 from omnilidar.generator.samplers import SAMPLER_NAMES
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
@@ -378,13 +378,16 @@ def check_calibration_sampler(dist: dict | None) -> None:
     return calibration's scans to sample (unset: nothing to check)."""
     if dist is None or not dist.get("calibration_sampler"):
         return
-    name, steps = calibration_sampler(dist)
-    if name not in SAMPLER_NAMES:
-        raise InputError(None, f"generator.distillation.calibration_sampler: unknown sampler {name!r}; choose from "
-                               f"{', '.join(SAMPLER_NAMES)}")
+    candidates = calibration_samplers(dist)
+    for name, steps in candidates:
+        if name not in SAMPLER_NAMES:
+            raise InputError(None, f"generator.distillation.calibration_sampler: unknown sampler {name!r}; choose from "
+                                   f"{', '.join(SAMPLER_NAMES)}")
+    if len(set(candidates)) < len(candidates):
+        raise InputError(None, "generator.distillation.calibration_sampler names a setting twice")
     if not dist["return_calibration"]:
-        raise InputError(None, f"generator.distillation.calibration_sampler {name}:{steps} samples the return "
-                               "calibration's scans: set return_calibration > 0")
+        raise InputError(None, f"generator.distillation.calibration_sampler {', '.join(f'{n}:{k}' for n, k in candidates)} "
+                               "samples the return calibration's scans: set return_calibration > 0")
 
 
 def check_last_round_terms(dist: dict | None) -> None:
@@ -638,9 +641,14 @@ def train_generator(
                                   "teacher_substeps": int(dist["teacher_substeps"]), "rounds": int(dist["rounds"]),
                                   "method": dist["method"], "return_calibration": int(dist["return_calibration"]),
                                   "range_calibration": int(dist["range_calibration"]),
-                                  "calibration_sampler": "{}:{}".format(*calibration_sampler(dist))}
+                                  "calibration_sampler": ", ".join(f"{n}:{k}" for n, k in calibration_samplers(dist))}
             if int(dist["return_calibration"]):
-                payload.update(calibrate_returns(final, frozen, payload, cache, seed, log=runner.logger.info))
+                references = calibration_references(domains, dist, (h, w))
+                calibration = calibrate_returns(final, frozen, payload, cache, seed, references, log=runner.logger.info)
+                choice = calibration.pop("calibration_choice")
+                if references:  # which candidate each domain's maps were fitted on
+                    payload["student"]["calibration_sampler"] = choice
+                payload.update(calibration)
         with atomic_path(out) as tmp:
             torch.save(payload, tmp)
     runner.logger.info(f"wrote {out}")
