@@ -515,6 +515,23 @@ def test_the_best_teacher_check_on_every_domain_samples_its_settings_in_each(tmp
     assert domains > set(three["domains"]) and given_every == {(s, d) for s in settings for d in domains}
 
 
+def test_the_calibration_candidates_check_fits_each_domain_on_the_closer_best_setting_and_scores_held_out(tmp_path):
+    """config/student_1step_calibration_candidates.yaml: the recipe's distillation with both best
+    teacher settings as calibration candidates, held against them in every domain, on the held-out sets."""
+    wf = copy_workflow(tmp_path)
+    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
+            "config/student_1step_calibration_candidates.yaml")
+    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args).stdout
+    distill = json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
+    assert distill["calibration_sampler"] == [{"sampler": "ddpm", "steps": 32}, {"sampler": "unipc_logsnr", "steps": 4}]
+    assert distill["rounds"] == 5 and distill["range_calibration"] == 17  # the recipe's
+    tradeoff = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])["tradeoff"]
+    assert tradeoff["domains"] == [] and {"ddpm", "unipc_logsnr"} <= set(tradeoff["samplers"])
+    assert "--reference data/domains_heldout/index.json" in out
+    rows = set(re.findall(r"--samples ([\w-]+)/(\w+)=", out))
+    assert {d for s, d in rows if s == "student-1"} == {d for s, d in rows if s == "ddpm-32"} and len(rows) > 8
+
+
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
     """diffusion.prior domain_mean: a student of another width, which cannot load its teacher's state,
     still takes the teacher's domain means, so both denoise the same residual."""
