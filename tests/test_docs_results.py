@@ -68,6 +68,18 @@ def test_a_short_student_check_renders_the_student_s_row_and_verdicts_alone():
     assert "The teacher's" not in short and "The teacher's" in full
 
 
+def test_a_student_calibrated_on_candidates_says_which_setting_each_domain_took_and_the_scans_it_was_scored_on():
+    text = "<!-- results:student_1step_candidates_heldout.short -->\n<!-- /results:student_1step_candidates_heldout.short -->\n"
+    short = readme.render_page(text, ROOT / "docs" / "results")
+    doc = json.loads((ROOT / "docs" / "results" / "student_1step_candidates_heldout.json").read_text())
+    chosen = doc["student"]["calibration_sampler"]
+    line = next(line for line in short.splitlines() if line.startswith("- Its returns and ranges calibrated on"))
+    for setting in set(chosen.values()):
+        domains = ", ".join(d for d, s in chosen.items() if s == setting)
+        assert f"{setting.replace(':', ' x ')} in {domains}" in line
+    assert "held-out real scans per domain (pi3det drone_val, pi3det quadruped_val, semantickitti val)" in short
+
+
 def test_readme_and_docs_agree_with_the_results_kept_in_docs():
     """Every number README and docs/ quote in a results block is what docs/results/*.json holds."""
     pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

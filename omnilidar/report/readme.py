@@ -254,6 +254,13 @@ def _student_lines(doc: dict, teacher_settings: bool = True) -> list[str]:
                     + (" (misses " + ", ".join(f"{d} by {x:+.3g}" for d, x in v["missed"].items()) + ")"
                        if v["missed"] else "") for m, v in row.items()]
         lines.append(f"- The teacher's {setting} by the same rule: {'; '.join(verdicts)}.")
+    chosen = (doc.get("student") or {}).get("calibration_sampler")
+    if isinstance(chosen, dict):  # calibration candidates: the setting each domain was fitted on
+        by = {}
+        for domain, setting in chosen.items():
+            by.setdefault(setting, []).append(domain)
+        lines.append("- Its returns and ranges calibrated on " + "; ".join(f"{s.replace(':', ' x ')} in {', '.join(d)}"
+                                                                           for s, d in by.items()) + ".")
     if check.get("speedup_over_default"):
         default = check["default_sampler"]
         lines.append(f"- Speed: {check['speedup_over_default']:.1f}x the generator's own sampler in that run "
