@@ -121,8 +121,8 @@ def test_of_several_calibration_settings_the_one_closest_to_the_training_scans_i
     """BEV JSD and MMD against the reference scans, each relative to the best candidate's: the
     reference's own scans win over the same scans with the lower half of their rows dropped, in
     either order."""
-    from omnilidar.generator.return_decision import closest_setting
     from omnilidar.generator.unet import range_image_spec
+    from omnilidar.metrics.generation import closest_setting
     from test_generation_targets import tiny_generator_settings
 
     spec = range_image_spec(tiny_generator_settings())
@@ -144,8 +144,8 @@ def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_th
     import shutil
 
     from omnilidar.generator.data import load_range_image, read_domains_index
-    from omnilidar.generator.return_decision import closest_setting
     from omnilidar.generator.unet import range_image_spec
+    from omnilidar.metrics.generation import closest_setting, closest_to_training_scans
 
     root, settings, index, prompts, plain = teacher
     work = tmp_path / "work"
@@ -154,9 +154,19 @@ def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_th
     candidates = [("ddpm", 3), ("ddim", 4)]
     calibrated["distillation"].update(return_calibration=4, range_calibration=3,
                                       calibration_sampler=[{"sampler": n, "steps": k} for n, k in candidates])
-    again = train_generator(calibrated, index, prompts, work, tmp_path / "student.pt", seed=3, teacher=root / "model.pt")
-    assert again["resumed_from"] == plain["iterations"] == again["iterations"]
+    with pytest.raises(InputError, match="needs the rule that chooses"):  # train_generator alone has none
+        train_generator(calibrated, index, prompts, work, tmp_path / "student.pt", seed=3, teacher=root / "model.pt")
+    assert not (tmp_path / "student.pt").exists()
+    import json
+
+    from omnilidar.cli import main
+
+    # The workflow's command passes the rule (closest_to_training_scans).
+    assert main(["distill-generator", "--settings", json.dumps(calibrated), "--seed", "3", "--teacher",
+                 str(root / "model.pt"), "--domains", str(index), "--prompts", str(prompts), "--work-dir", str(work),
+                 "--out", str(tmp_path / "student.pt")]) == 0
     payload = torch.load(tmp_path / "student.pt", weights_only=True)
+    assert payload["resumed_from"] == plain["iterations"] == payload["iterations"]
     choice = payload["student"]["calibration_sampler"]
     assert set(choice) == set(TINY_DOMAINS) and set(choice.values()) <= {"ddpm:3", "ddim:4"}
     gen, _ = load_generator(root / "model.pt")
@@ -179,7 +189,8 @@ def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_th
     twice = copy.deepcopy(calibrated)
     twice["distillation"]["calibration_sampler"] = [{"sampler": "ddpm", "steps": 3}] * 2
     with pytest.raises(InputError, match="names a setting twice"):
-        train_generator(twice, index, prompts, tmp_path / "twice", tmp_path / "twice.pt", seed=3, teacher=root / "model.pt")
+        train_generator(twice, index, prompts, tmp_path / "twice", tmp_path / "twice.pt", seed=3, teacher=root / "model.pt",
+                        choose_calibration=closest_to_training_scans(index, range_image_spec(settings)))
 
 
 def test_a_checkpoint_whose_thresholds_do_not_fit_its_image_is_one_clear_error(teacher, tmp_path):

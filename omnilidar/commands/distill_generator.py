@@ -34,8 +34,13 @@ def run(args) -> int:
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     if args.preset:
         settings = apply_preset(settings, args.preset)
+    from omnilidar.generator.unet import range_image_spec
+    from omnilidar.metrics.generation import closest_to_training_scans
+
+    # Calibration candidates (calibration_sampler as a list): each domain takes the closest to its training scans.
+    choose = closest_to_training_scans(args.domains, range_image_spec(settings))
     summary = train_generator(settings, args.domains, args.prompts, args.work_dir, args.out, seed=args.seed,
-                              until=args.until, teacher=args.teacher)
+                              until=args.until, teacher=args.teacher, choose_calibration=choose)
     steps = student_steps(settings["distillation"])
     what = f"up to iteration {args.until}" if args.until else f"{summary['iterations']} iterations"
     print(f"distilled {args.teacher} into a {steps}-step student ({what}) -> {args.out}")

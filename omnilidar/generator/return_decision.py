@@ -73,58 +73,29 @@ def row_range_knots(student_range: np.ndarray, student_returns: np.ndarray, teac
     return out
 
 
-# Training scans per domain against which calibration candidates are compared (the first ones).
-REFERENCE_SCANS = 64
-
-
-def calibration_references(domains: dict[str, dict], distillation: dict, shape: tuple[int, int]) -> dict | None:
-    """{domain: (N, 2, H, W)} the first training scans of each domain (read_domains_index's entries),
-    where ``calibration_sampler`` names several candidates to choose between; else None."""
-    if len(calibration_samplers(distillation)) < 2 or not int(distillation.get("return_calibration") or 0):
-        return None
-    from omnilidar.generator.data import load_range_image
-
-    return {name: np.stack([load_range_image(f, shape) for f in entry["files"][:REFERENCE_SCANS]])
-            for name, entry in domains.items()}
-
-
-def closest_setting(candidates: dict[str, np.ndarray], reference: np.ndarray, spec) -> tuple[str, dict]:
-    """The label of the candidate scan set (each (N, 2, H, W)) closest to ``reference``'s scans, and
-    every candidate's BEV JSD and MMD against them: the lowest sum of each metric relative to its
-    best, so that both count alike."""
-    from omnilidar.metrics.generation import compare, set_features
-
-    real = set_features(reference, spec, {}, 8, "reference")
-    scores = {label: {m: compare(real, set_features(images, spec, {}, 8, label), {})[m] for m in ("JSD", "MMD")}
-              for label, images in candidates.items()}
-    best = {m: min(s[m] for s in scores.values()) for m in ("JSD", "MMD")}
-    pick = min(scores, key=lambda label: sum(scores[label][m] / max(best[m], 1e-12) for m in best))
-    return pick, scores
-
-
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
-                      seed: int, references: dict | None = None, batch: int = 8, log=print) -> dict:
+                      seed: int, choose=None, batch: int = 8, log=print) -> dict:
     """The student's calibration against ``teacher`` (the trained generator with DDIM x
     ``teacher_steps`` x ``teacher_substeps``, the sampler the student learnt, on the distillation's
     spacing, or with ``calibration_sampler``) on ``return_calibration`` seeded scans per domain:
     ``return_thresholds`` (domains, H) float32, and with ``range_calibration`` K > 0 ``range_map``
     (domains, H, 2, K) float32 of the thresholded student's returns; ``payload``: the student's checkpoint contents (its settings,
-    domains and their back-projection geometry). With several candidate settings, each domain is
-    calibrated on the candidate whose scans lie closest to its training scans ``references``
-    (:func:`calibration_references`; BEV JSD and MMD, :func:`closest_setting`), and
-    ``calibration_choice`` says which ({domain: "sampler:steps"})."""
+    domains and their back-projection geometry). With several candidate settings, ``choose(domain,
+    {"sampler:steps": scans})`` -> (the one to calibrate on, its scores) decides per domain (the
+    command passes :func:`omnilidar.metrics.generation.closest_to_training_scans`: the candidate whose
+    scans lie closest to the domain's training scans), and ``calibration_choice`` says which
+    ({domain: "sampler:steps"})."""
     from omnilidar.data.range_image import decode
     from omnilidar.generator.sampling import domain_points_spec
     from omnilidar.generator.schedule import CosineLogSNRSchedule
-    from omnilidar.generator.unet import range_image_spec
 
     settings = payload["config"]
     distillation, d = settings["distillation"], settings["diffusion"]
     schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
     scans, sampler = int(distillation["return_calibration"]), student_sampler(distillation)
     candidates = calibration_samplers(distillation)
-    if len(candidates) > 1 and not references:
-        raise ValueError("several calibration candidates need each domain's training scans to choose between them")
+    if len(candidates) > 1 and choose is None:
+        raise ValueError("several calibration candidates need a rule that chooses between them (choose)")
     knots = int(distillation.get("range_calibration") or 0)
     student, teacher = student.eval(), teacher.eval()
     out, maps, choice = [], [], {}
@@ -140,7 +111,7 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
         drawn = {f"{how}:{steps}": draw(teacher, how, steps) for how, steps in candidates}
         choice[name] = next(iter(drawn))
         if len(drawn) > 1:
-            choice[name], scores = closest_setting(drawn, references[name], range_image_spec(settings))
+            choice[name], scores = choose(name, drawn)
             log(f"calibration candidates {name} against its training scans: "
                 + ", ".join(f"{k} JSD {v['JSD']:.4f} MMD {v['MMD'] * 1e4:.2f}e-4" for k, v in scores.items())
                 + f"; calibrated on {choice[name]}")

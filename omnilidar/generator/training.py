@@ -52,7 +52,7 @@ from omnilidar.generator.distill_steps import (calibration_samplers, compression
                                                last_round_terms, res_blocks_per_level, round_at, round_iterations,
                                                round_steps, starts_from_teacher, student_lr, student_model,
                                                student_sampler, student_steps, teacher_sampler_steps)
-from omnilidar.generator.return_decision import calibrate_returns, calibration_references
+from omnilidar.generator.return_decision import calibrate_returns
 from omnilidar.generator.samplers import SAMPLER_NAMES
 from omnilidar.generator.schedule import CosineLogSNRSchedule
 from omnilidar.generator.text import load_prompt_cache, stack_prompts
@@ -421,6 +421,7 @@ def train_generator(
     seed: int = 0,
     until: int | None = None,
     teacher: str | Path | None = None,
+    choose_calibration=None,
 ) -> dict:
     """Train (or resume) the generator and write the final EMA weights + config to ``out``.
 
@@ -432,6 +433,9 @@ def train_generator(
     at the distillation learning rate, without EMA, and
     ``out`` records the DDIM steps it samples in (``payload["student"]``) and the student's own
     model settings.
+
+    ``choose_calibration``: with several ``calibration_sampler`` candidates, the rule that picks
+    each domain's (:func:`~omnilidar.generator.return_decision.calibrate_returns`' ``choose``).
 
     ``until``: one segment of a chain (see ``rules/generator.smk``): train only up to that
     iteration, leave the resumable state (checkpoint at ``until``) in ``work_dir`` and write a
@@ -464,6 +468,9 @@ def train_generator(
         raise InputError(None, f"generator.distillation.range_calibration {dist['range_calibration']} maps the "
                                "student's returns on the return calibration's scans: set return_calibration > 0")
     check_calibration_sampler(dist)
+    if dist is not None and len(calibration_samplers(dist)) > 1 and choose_calibration is None:
+        raise InputError(None, "generator.distillation.calibration_sampler names candidates: the distillation "
+                               "needs the rule that chooses between them (omnilidar distill-generator passes it)")
     use_training_device(tr["device"])
     h, w = settings["range_image"]["height"], settings["range_image"]["width"]
     check_crop_width(settings)
@@ -643,10 +650,10 @@ def train_generator(
                                   "range_calibration": int(dist["range_calibration"]),
                                   "calibration_sampler": ", ".join(f"{n}:{k}" for n, k in calibration_samplers(dist))}
             if int(dist["return_calibration"]):
-                references = calibration_references(domains, dist, (h, w))
-                calibration = calibrate_returns(final, frozen, payload, cache, seed, references, log=runner.logger.info)
+                calibration = calibrate_returns(final, frozen, payload, cache, seed, choose_calibration,
+                                                log=runner.logger.info)
                 choice = calibration.pop("calibration_choice")
-                if references:  # which candidate each domain's maps were fitted on
+                if len(calibration_samplers(dist)) > 1:  # which candidate each domain's maps were fitted on
                     payload["student"]["calibration_sampler"] = choice
                 payload.update(calibration)
         with atomic_path(out) as tmp:

@@ -128,6 +128,37 @@ def real_domain_images(domains_index, domain: str, shape: tuple[int, int], limit
     return np.stack([load_range_image(f, shape) for f in files])
 
 
+# Training scans per domain that calibration candidates are compared with (the first ones).
+REFERENCE_SCANS = 64
+
+
+def closest_setting(candidates: dict[str, np.ndarray], reference: np.ndarray, spec: RangeImageSpec) -> tuple[str, dict]:
+    """The label of the candidate scan set (each (N, 2, H, W)) closest to ``reference``'s scans, and
+    every candidate's BEV JSD and MMD against them: the lowest sum of each metric relative to its
+    best, so that both count alike."""
+    real = set_features(reference, spec, {}, 8, "reference")
+    scores = {label: {m: compare(real, set_features(images, spec, {}, 8, label), {})[m] for m in ("JSD", "MMD")}
+              for label, images in candidates.items()}
+    best = {m: min(s[m] for s in scores.values()) for m in ("JSD", "MMD")}
+    pick = min(scores, key=lambda label: sum(scores[label][m] / max(best[m], 1e-12) for m in best))
+    return pick, scores
+
+
+def closest_to_training_scans(domains_index, spec: RangeImageSpec):
+    """A distillation's calibration rule (``choose`` of
+    :func:`omnilidar.generator.return_decision.calibrate_returns`): of the candidate settings' scans
+    of a domain, those closest to the domain's first training scans (:func:`closest_setting`)."""
+    from omnilidar.generator.data import load_range_image, read_domains_index
+
+    domains = read_domains_index(domains_index)
+
+    def choose(domain: str, candidates: dict[str, np.ndarray]) -> tuple[str, dict]:
+        files = domains[domain]["files"][:REFERENCE_SCANS]
+        return closest_setting(candidates, np.stack([load_range_image(f, spec.shape) for f in files]), spec)
+
+    return choose
+
+
 def domain_sources(domains_index, domains: list[str]) -> dict[str, str | None]:
     """Where each domain's built scans come from, "<dataset> <split>" (the shards' sidecars; several
     splits joined by "+"), or None where a shard has no sidecar that says."""
