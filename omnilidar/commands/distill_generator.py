@@ -25,20 +25,21 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     from omnilidar.config import validate
-    from omnilidar.generator.distill_steps import student_steps
+    from omnilidar.generator.distill_steps import calibration_samplers, student_steps
     from omnilidar.generator.presets import apply_preset
     from omnilidar.generator.training import train_generator
+    from omnilidar.generator.unet import range_image_spec
+    from omnilidar.metrics.generation import closest_to_training_scans
     from omnilidar.devices import set_threads
 
     set_threads(args.threads)
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     if args.preset:
         settings = apply_preset(settings, args.preset)
-    from omnilidar.generator.unet import range_image_spec
-    from omnilidar.metrics.generation import closest_to_training_scans
-
-    # Calibration candidates (calibration_sampler as a list): each domain takes the closest to its training scans.
-    choose = closest_to_training_scans(args.domains, range_image_spec(settings))
+    # Calibration candidates (calibration_sampler as a list): each domain takes the closest to its
+    # training scans; the index is read for that only.
+    choose = (closest_to_training_scans(args.domains, range_image_spec(settings))
+              if len(calibration_samplers(settings["distillation"])) > 1 else None)
     summary = train_generator(settings, args.domains, args.prompts, args.work_dir, args.out, seed=args.seed,
                               until=args.until, teacher=args.teacher, choose_calibration=choose)
     steps = student_steps(settings["distillation"])
