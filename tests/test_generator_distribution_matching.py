@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from omnilidar.errors import InputError
-from omnilidar.generator.distill_steps import LAST_ROUND_STEP_COST, last_round_extra_steps
+from omnilidar.generator.distill_steps import LAST_ROUND_STEP_COST, distillation_iterations, last_round_extra_steps
 from omnilidar.generator.distribution_matching import (build_fake_score, fake_score_loss, matching_direction,
                                                        matching_loss)
 from omnilidar.generator.schedule import CosineLogSNRSchedule, alpha_sigma
@@ -113,6 +113,31 @@ def test_distribution_matching_alone_in_the_last_round_trains_another_student(te
 
 def test_an_interrupted_distillation_with_distribution_matching_resumes_to_the_same_student(teacher, tmp_path):
     resumes_inside_the_last_round(teacher, _matching(teacher[1]), tmp_path)
+
+
+def test_a_longer_last_round_resumes_the_finished_distillation_at_a_constant_rate(teacher, tmp_path):
+    """final_round_iterations extends a finished distillation as iterations extends a training: the
+    longer last round resumes its state and ends on the student distilled whole at that length, bit
+    for bit. Under a cosine rate the round's length shapes every rate in it: it starts afresh."""
+    root, settings, index, prompts, _ = teacher
+    short = _matching(settings)
+    longer = copy.deepcopy(short)
+    longer["distillation"]["final_round_iterations"] = short["distillation"]["iterations_per_round"] + 2
+    train_generator(longer, index, prompts, tmp_path / "whole", tmp_path / "whole.pt", seed=3,
+                    teacher=root / "model.pt")
+    first = train_generator(short, index, prompts, tmp_path / "work", tmp_path / "short.pt", seed=3,
+                            teacher=root / "model.pt")
+    extended = train_generator(longer, index, prompts, tmp_path / "work", tmp_path / "student.pt", seed=3,
+                               teacher=root / "model.pt")
+    assert extended["resumed_from"] == distillation_iterations(short) == first["iterations"]
+    a, b = _state(tmp_path / "whole.pt"), _state(tmp_path / "student.pt")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    cosine = {**short, "distillation": {**short["distillation"], "lr_decay": "cosine"}}
+    train_generator(cosine, index, prompts, tmp_path / "cosine", tmp_path / "c.pt", seed=3, teacher=root / "model.pt")
+    cosine_longer = {**cosine, "distillation": {**cosine["distillation"], "final_round_iterations": 6}}
+    again = train_generator(cosine_longer, index, prompts, tmp_path / "cosine", tmp_path / "c6.pt", seed=3,
+                            teacher=root / "model.pt")
+    assert again["resumed_from"] == 0
 
 
 @pytest.mark.parametrize("change, message", [

@@ -84,11 +84,16 @@ _CALIBRATION_KEYS = ("return_calibration", "range_calibration", "calibration_sam
 
 def trajectory_settings(settings: dict, distilling: bool = False) -> dict:
     """The settings that determine the training trajectory (provenance of a run); the
-    distillation section, less its calibration, only where the run is a distillation."""
+    distillation section, less its calibration, only where the run is a distillation. At a
+    constant rate (``lr_decay: constant``) the last round's length decides nothing before the
+    round ends, so ``final_round_iterations`` extends a distillation as ``iterations`` extends a
+    training: a longer last round resumes the finished student's state."""
     relevant = {k: v for k, v in settings.items() if k != "sampling" and (distilling or k != "distillation")}
     relevant["training"] = {k: v for k, v in settings["training"].items() if k not in _RESUMABLE_KEYS}
     if distilling:
-        relevant["distillation"] = {k: v for k, v in settings["distillation"].items() if k not in _CALIBRATION_KEYS}
+        dist = settings["distillation"]
+        extends = ("final_round_iterations",) if dist.get("lr_decay", "constant") == "constant" else ()
+        relevant["distillation"] = {k: v for k, v in dist.items() if k not in _CALIBRATION_KEYS + extends}
     return json.loads(json.dumps(relevant, sort_keys=True, default=str))
 
 
