@@ -532,6 +532,24 @@ def test_the_calibration_candidates_check_fits_each_domain_on_the_closer_best_se
     assert {d for s, d in rows if s == "student-1"} == {d for s, d in rows if s == "ddpm-32"} and len(rows) > 8
 
 
+def test_the_long_last_round_check_extends_the_candidates_check_s_last_round_only(tmp_path):
+    """config/student_1step_long_last_round.yaml: the calibration-candidates check with a last round
+    three times as long, nothing else changed (so it resumes that check's finished distillation)."""
+    wf = copy_workflow(tmp_path)
+    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
+            "config/student_1step_calibration_candidates.yaml")
+
+    def distillation(*overlay):
+        out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args, *overlay).stdout
+        return json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
+
+    base, longer = distillation(), distillation("config/student_1step_long_last_round.yaml")
+    assert longer["final_round_iterations"] == 3 * base["iterations_per_round"]
+    assert {k: v for k, v in longer.items() if k != "final_round_iterations"} == \
+        {k: v for k, v in base.items() if k != "final_round_iterations"}
+    assert longer["lr_decay"] == "constant"  # the rate under which the longer round resumes
+
+
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
     """diffusion.prior domain_mean: a student of another width, which cannot load its teacher's state,
     still takes the teacher's domain means, so both denoise the same residual."""
