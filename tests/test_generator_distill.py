@@ -550,6 +550,23 @@ def test_the_long_last_round_check_extends_the_candidates_check_s_last_round_onl
     assert longer["lr_decay"] == "constant"  # the rate under which the longer round resumes
 
 
+def test_the_sector_check_changes_only_the_long_last_round_check_s_calibration(tmp_path):
+    """config/student_1step_sectors.yaml: the long-last-round check with a range map per azimuth
+    sector, a calibration key only (so it calibrates that check's finished distillation again)."""
+    wf = copy_workflow(tmp_path)
+    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
+            "config/student_1step_calibration_candidates.yaml", "config/student_1step_long_last_round.yaml")
+
+    def distillation(*overlay):
+        out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args, *overlay).stdout
+        return json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
+
+    base, sectored = distillation(), distillation("config/student_1step_sectors.yaml")
+    assert base["calibration_sectors"] == 1 and sectored["calibration_sectors"] == 8
+    assert {k: v for k, v in sectored.items() if k != "calibration_sectors"} == \
+        {k: v for k, v in base.items() if k != "calibration_sectors"}
+
+
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
     """diffusion.prior domain_mean: a student of another width, which cannot load its teacher's state,
     still takes the teacher's domain means, so both denoise the same residual."""

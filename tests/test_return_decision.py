@@ -16,7 +16,7 @@ from omnilidar.errors import InputError
 from omnilidar.generator.checkpoint import load_generator
 from omnilidar.generator.data import rng_for
 from omnilidar.generator.diffusion import apply_range_map, apply_return_thresholds, generate, scan_seed
-from omnilidar.generator.return_decision import calibration_seeds, row_range_knots, row_thresholds
+from omnilidar.generator.return_decision import calibration_seeds, fit_by_sector, row_range_knots, row_thresholds
 from omnilidar.generator.sampling import domain_points_spec
 from omnilidar.generator.text import load_prompt_cache
 from omnilidar.generator.training import train_generator
@@ -110,6 +110,45 @@ def test_calibrating_a_finished_distillation_again_resumes_it_and_does_not_disti
     payload = torch.load(tmp_path / "student.pt", weights_only=True)
     assert payload["return_thresholds"].shape[0] == len(TINY_DOMAINS) and payload["range_map"].shape[-1] == 3
     assert payload["student"]["return_calibration"] == 4 and payload["student"]["range_calibration"] == 3
+    # Range maps per azimuth sector: calibrated again, still not distilled again.
+    sectored = copy.deepcopy(calibrated)
+    sectored["distillation"]["calibration_sectors"] = 4
+    again = train_generator(sectored, index, prompts, work, tmp_path / "sectored.pt", seed=3, teacher=root / "model.pt")
+    assert again["resumed_from"] == plain["iterations"] and again["weights_digest"] == plain["weights_digest"]
+    student, sectors = load_generator(tmp_path / "sectored.pt")
+    h, w = settings["range_image"]["height"], settings["range_image"]["width"]
+    assert sectors["range_map"].shape == (len(TINY_DOMAINS), 4, h, 2, 3)
+    assert sectors["return_thresholds"].shape == (len(TINY_DOMAINS), 4, h)
+    assert sectors["student"]["calibration_sectors"] == 4
+    # Each sector's map is fitted on its own columns: on the calibration noise the student's returns
+    # in a mapped row of a sector span the teacher's there.
+    name, spec = TINY_DOMAINS[0], domain_points_spec(sectors["config"], sectors, TINY_DOMAINS[0])
+    entry = load_prompt_cache(prompts)["domains"][name]
+    seeds = calibration_seeds(3, name, 4)
+    t = generate(load_generator(root / "model.pt")[0], 0, entry["tokens"][0], entry["mask"][0], seeds, spec.shape,
+                 "ddim", 4).numpy()
+    s = generate(student, 0, entry["tokens"][0], entry["mask"][0], seeds, spec.shape, "ddim", 1).numpy()
+    t_ret, s_ret = (np.stack([decode(img, spec)[2] for img in x]) for x in (t, s))
+    mapped = 0
+    for sector in range(4):
+        cols = slice(sector * w // 4, (sector + 1) * w // 4)
+        # The sector's return fraction per row is its teacher's (up to ties), where the student returned more.
+        more = s_ret[:, :, cols].mean(axis=(0, 2)) >= t_ret[:, :, cols].mean(axis=(0, 2))
+        np.testing.assert_allclose(s_ret[:, more, cols].mean(axis=(0, 2)), t_ret[:, more, cols].mean(axis=(0, 2)),
+                                   atol=1.5 / (4 * w // 4))
+        for row in range(h):
+            knots = sectors["range_map"][0, sector, row].numpy()
+            if np.array_equal(knots[0], knots[1]):
+                continue
+            own, theirs = s[:, 0, row, cols][s_ret[:, row, cols]], t[:, 0, row, cols][t_ret[:, row, cols]]
+            np.testing.assert_allclose([own.min(), own.max()], [theirs.min(), theirs.max()], atol=1e-5)
+            mapped += 1
+    assert mapped
+    wrong = copy.deepcopy(sectored)
+    wrong["distillation"]["calibration_sectors"] = 3
+    with pytest.raises(InputError, match="calibration_sectors 3 .*width 64"):
+        train_generator(wrong, index, prompts, work, tmp_path / "wrong.pt", seed=3, teacher=root / "model.pt")
+    assert not (tmp_path / "wrong.pt").exists()
     # A setting that changes what a step computes distils again from the start.
     longer = copy.deepcopy(calibrated)
     longer["distillation"]["iterations_per_round"] += 1
@@ -232,6 +271,54 @@ def test_a_range_map_moves_the_student_s_returns_onto_its_teacher_s_quantiles():
     assert torch.equal(mapped[:, 0, 2], images[:, 0, 2])  # the identity row is untouched
 
 
+def test_a_calibration_per_azimuth_sector_fits_and_applies_each_sector_s_columns_on_their_own():
+    """A pitched sensor's row is near on one side and far on the other: one map per row mixes the
+    two, one map per row and sector moves each side onto its teacher's; and a threshold per row and
+    sector empties the student's pixels on the side where its teacher's drop-outs lie."""
+    rng = np.random.default_rng(2)
+    n, h, w = 6, 3, 40
+    half = (slice(0, w // 2), slice(w // 2, w))
+    student = rng.uniform(-0.2, 0.2, (n, h, w)).astype(np.float32)  # the sides blurred together
+    teacher = np.concatenate([rng.uniform(-0.8, -0.4, (n, h, w // 2)), rng.uniform(0.4, 0.8, (n, h, w // 2))],
+                             axis=-1).astype(np.float32)  # near on the left, far on the right
+    returns = np.ones(student.shape, bool)
+    knots = fit_by_sector(lambda *a: row_range_knots(*a, 5), (student, returns, teacher, returns), 2)
+    assert knots.shape == (2, h, 2, 5)
+    for s, cols in enumerate(half):  # each sector: its own columns' quantiles
+        np.testing.assert_array_equal(knots[s], row_range_knots(student[..., cols], returns[..., cols],
+                                                                teacher[..., cols], returns[..., cols], 5))
+    np.testing.assert_array_equal(fit_by_sector(lambda *a: row_range_knots(*a, 5), (student, returns, teacher,
+                                                                                     returns), 1)[0],
+                                  row_range_knots(student, returns, teacher, returns, 5))
+    images = torch.from_numpy(np.stack([student, np.zeros_like(student)], axis=1))
+    by_sector = apply_range_map(images, torch.from_numpy(knots))
+    for s, cols in enumerate(half):
+        assert torch.equal(by_sector[..., cols], apply_range_map(images[..., cols], torch.from_numpy(knots[s])))
+    left, right = by_sector[:, 0, :, half[0]].numpy(), by_sector[:, 0, :, half[1]].numpy()
+    assert left.max() <= -0.4 + 1e-6 and right.min() >= 0.4 - 1e-6  # each side where its teacher's is
+    per_row = apply_range_map(images, torch.from_numpy(row_range_knots(student, returns, teacher, returns, 5)))
+    assert (per_row[:, 0, :, half[0]] > 0).float().mean() > 0.3  # one map per row sends the left side far too
+
+    # The teacher drops a third of the right side's returns (the sky behind a pitched sensor), none on
+    # the left; the student returns everywhere, lowest (its ground) on the left.
+    dropped = np.ones(student.shape, bool)
+    dropped[..., w // 2:] = rng.random((n, h, w // 2)) > 1 / 3
+    lowest_left = student - 0.5 * (np.arange(w) < w // 2)
+    thresholds = fit_by_sector(row_thresholds, (lowest_left, returns, dropped), 2)
+    assert thresholds.shape == (2, h) and (thresholds[0] == -1).all() and (thresholds[1] > -1).all()
+    kept = apply_return_thresholds(torch.from_numpy(np.stack([lowest_left, lowest_left], axis=1)),
+                                   torch.from_numpy(thresholds))[:, 0].numpy() > -1
+    assert kept[..., half[0]].all()  # the left keeps every return
+    np.testing.assert_allclose(kept[..., half[1]].mean(), dropped[..., half[1]].mean(), atol=0.01)
+    one_per_row = row_thresholds(lowest_left, returns, dropped)
+    emptied = lowest_left <= one_per_row[None, :, None]  # one threshold per row: the left's ground goes instead
+    assert emptied[..., half[0]].mean() > 0.3 and not emptied[..., half[1]].any()
+    with pytest.raises(ValueError, match="3 azimuth sectors"):
+        fit_by_sector(row_thresholds, (student, returns, teacher), 3)
+    with pytest.raises(ValueError, match="3 azimuth sectors"):
+        apply_range_map(images, torch.zeros(3, h, 2, 5))
+
+
 @pytest.mark.parametrize("calibrated_on", [None, ("ddpm", 3)], ids=["learnt-path", "ddpm"])
 def test_a_tiny_distillation_maps_its_student_s_returns_onto_its_teacher_s(teacher, tmp_path, calibrated_on):
     """On the DDIM path the student learnt (the tiny teacher's DDIM x 4), or on the scans of the
@@ -295,7 +382,8 @@ def test_a_tiny_distillation_maps_its_student_s_returns_onto_its_teacher_s(teach
 
 def test_a_checkpoint_whose_range_map_does_not_fit_its_image_is_one_clear_error(teacher, tmp_path):
     payload = torch.load(teacher[0] / "student.pt", weights_only=True)
-    payload["range_map"] = torch.zeros(len(TINY_DOMAINS), 3, 2, 5)
-    torch.save(payload, tmp_path / "bad.pt")
-    with pytest.raises(InputError, match="range_map"):
-        load_generator(tmp_path / "bad.pt")
+    for shape in ((len(TINY_DOMAINS), 3, 2, 5), (len(TINY_DOMAINS), 3, 16, 2, 5)):  # 3 sectors do not split 64
+        payload["range_map"] = torch.zeros(shape)
+        torch.save(payload, tmp_path / "bad.pt")
+        with pytest.raises(InputError, match="range_map"):
+            load_generator(tmp_path / "bad.pt")

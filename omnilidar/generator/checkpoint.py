@@ -39,15 +39,21 @@ def load_generator(path: str | Path, device: str | torch.device = "cpu", backend
         denoiser.load_state_dict(payload["state_dict"], strict=True)
     except RuntimeError as err:
         raise InputError(path, f"weights do not match the stored config: {err}") from None
-    thresholds = payload.get("return_thresholds")  # a calibrated student's (omnilidar.generator.return_decision)
-    if thresholds is not None:
-        if tuple(thresholds.shape) != (len(payload["domains"]), int(settings["range_image"]["height"])):
-            raise InputError(path, f"return_thresholds are {tuple(thresholds.shape)}, not (domains, image rows)")
-        denoiser.return_thresholds = thresholds.float()
-    range_map = payload.get("range_map")  # a range-calibrated student's
-    if range_map is not None:
-        rows = int(settings["range_image"]["height"])
-        if range_map.dim() != 4 or tuple(range_map.shape[:3]) != (len(payload["domains"]), rows, 2):
-            raise InputError(path, f"range_map is {tuple(range_map.shape)}, not (domains, image rows, 2, knots)")
-        denoiser.range_map = range_map.float()
+    # A calibrated student's return decision and range map (omnilidar.generator.return_decision):
+    # per domain and image row, or per domain, azimuth sector and image row.
+    domains, rows = len(payload["domains"]), int(settings["range_image"]["height"])
+    width = int(settings["range_image"]["width"])
+    for key, tail, what in (("return_thresholds", 0, "image rows"), ("range_map", 2, "image rows, 2, knots")):
+        table = payload.get(key)
+        if table is None:
+            continue
+        shape = tuple(table.shape)
+        sectored = len(shape) == 3 + tail
+        sectors, rest = (shape[1], shape[2:]) if sectored else (1, shape[1:])  # rest: (rows, [2, knots])
+        fits = (len(shape) in (2 + tail, 3 + tail) and shape[0] == domains and rest[0] == rows
+                and (tail == 0 or rest[1] == 2) and sectors > 0 and width % sectors == 0)
+        if not fits:
+            raise InputError(path, f"{key} is {shape}, not (domains, {what}) or (domains, azimuth sectors "
+                                   f"dividing {width} columns, {what})")
+        setattr(denoiser, key, table.float())
     return denoiser.to(device).eval(), payload

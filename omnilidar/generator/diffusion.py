@@ -76,10 +76,23 @@ def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.T
     return (min_snr_weight(logsnr, gamma) * per_scan).mean()
 
 
+def by_sector(apply, images: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+    """``apply(images, table[s])`` on each of S = len(table) equal azimuth sectors (column blocks) of
+    the (B, C, H, W) images, put back together: a calibration fitted per sector."""
+    sectors = table.shape[0]
+    width = images.shape[-1] // sectors
+    if width * sectors != images.shape[-1]:
+        raise ValueError(f"{sectors} azimuth sectors do not split an image {images.shape[-1]} columns wide")
+    return torch.cat([apply(images[..., s * width:(s + 1) * width], table[s]) for s in range(sectors)], dim=-1)
+
+
 def apply_return_thresholds(images: torch.Tensor, thresholds: torch.Tensor) -> torch.Tensor:
     """(B, 2, H, W) images with every pixel whose encoded range is at or below its row's threshold
     (H,) made empty (-1 in both channels): a calibrated student's return decision
-    (:mod:`omnilidar.generator.return_decision`)."""
+    (:mod:`omnilidar.generator.return_decision`). Thresholds (S, H) decide each of S equal azimuth
+    sectors with its own rows' thresholds."""
+    if thresholds.dim() == 2:
+        return by_sector(apply_return_thresholds, images, thresholds)
     empty = images[:, 0] <= thresholds.to(images)[None, :, None]
     return torch.where(empty[:, None], torch.full_like(images, -1.0), images)
 
@@ -88,7 +101,10 @@ def apply_range_map(images: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
     """(B, 2, H, W) images whose encoded ranges at or above their row's lowest student knot move
     along the row's monotone piecewise-linear map from the student's knots ``knots[:, 0]`` to the
     teacher's ``knots[:, 1]`` ((H, 2, K)): a calibrated student's returns
-    (:mod:`omnilidar.generator.return_decision`); drop-outs and intensities are untouched."""
+    (:mod:`omnilidar.generator.return_decision`); drop-outs and intensities are untouched. Knots
+    (S, H, 2, K) map each of S equal azimuth sectors with its own rows' maps."""
+    if knots.dim() == 4:
+        return by_sector(apply_range_map, images, knots)
     b, _, h, w = images.shape
     xp, fp = knots[:, 0].to(images), knots[:, 1].to(images)
     x = images[:, 0].permute(1, 0, 2).reshape(h, b * w).contiguous()  # one row of values per image row

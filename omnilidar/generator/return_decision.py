@@ -21,6 +21,12 @@ each (after the return decision) are the knots of a monotone piecewise-linear ma
 :func:`omnilidar.generator.diffusion.apply_range_map` applies to the student's returns. A one-step
 x0 regression pulls what it cannot place towards the mean, so far surfaces come nearer and one
 row's ranges lie closer together than its teacher's (``benchmarks/measure_student_returns.py``).
+``calibration_sectors`` S > 1 fits and applies both, the thresholds and the map, per row in each of
+S equal azimuth sectors (column blocks; ``return_thresholds`` (domains, S, rows), ``range_map``
+(domains, S, rows, 2, K)): where the sensor is pitched (Drone), a row looks down at the ground on
+one side and up over the scene on the other, and one threshold or map per row mixes the two: the
+row's lowest values, its near ground, become drop-outs where its teacher's drop-outs lie on the
+other side.
 """
 
 from __future__ import annotations
@@ -73,13 +79,23 @@ def row_range_knots(student_range: np.ndarray, student_returns: np.ndarray, teac
     return out
 
 
+def fit_by_sector(fit, arrays: tuple[np.ndarray, ...], sectors: int) -> np.ndarray:
+    """``fit(*arrays)`` on each of ``sectors`` equal azimuth sectors (column blocks) of the (N, H, W)
+    ``arrays`` on its own, stacked: (sectors, ...) per-row fits."""
+    width = arrays[0].shape[-1] // sectors
+    if width * sectors != arrays[0].shape[-1]:
+        raise ValueError(f"{sectors} azimuth sectors do not split an image {arrays[0].shape[-1]} columns wide")
+    return np.stack([fit(*(a[..., s * width:(s + 1) * width] for a in arrays)) for s in range(sectors)])
+
+
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
                       seed: int, choose=None, batch: int = 8, log=print) -> dict:
     """The student's calibration against ``teacher`` (the trained generator with DDIM x
     ``teacher_steps`` x ``teacher_substeps``, the sampler the student learnt, on the distillation's
     spacing, or with ``calibration_sampler``) on ``return_calibration`` seeded scans per domain:
     ``return_thresholds`` (domains, H) float32, and with ``range_calibration`` K > 0 ``range_map``
-    (domains, H, 2, K) float32 of the thresholded student's returns; ``payload``: the student's checkpoint contents (its settings,
+    (domains, H, 2, K) float32 of the thresholded student's returns (with ``calibration_sectors``
+    S > 1 both per azimuth sector: (domains, S, H) and (domains, S, H, 2, K)); ``payload``: the student's checkpoint contents (its settings,
     domains and their back-projection geometry). With several candidate settings, ``choose(domain,
     {"sampler:steps": scans})`` -> (the one to calibrate on, its scores) decides per domain (the
     command passes :func:`omnilidar.metrics.generation.closest_to_training_scans`: the candidate whose
@@ -97,6 +113,7 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
     if len(candidates) > 1 and choose is None:
         raise ValueError("several calibration candidates need a rule that chooses between them (choose)")
     knots = int(distillation.get("range_calibration") or 0)
+    sectors = int(distillation.get("calibration_sectors") or 1)
     student, teacher = student.eval(), teacher.eval()
     out, maps, choice = [], [], {}
     for index, name in enumerate(payload["domains"]):
@@ -117,13 +134,18 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
                 + f"; calibrated on {choice[name]}")
         sampled = {"teacher": drawn[choice[name]], "student": draw(student, sampler, student_steps(distillation))}
         returns = {who: np.stack([decode(img, spec)[2] for img in images]) for who, images in sampled.items()}
-        out.append(row_thresholds(sampled["student"][:, 0], returns["student"], returns["teacher"]))
+        thresholds = fit_by_sector(row_thresholds, (sampled["student"][:, 0], returns["student"], returns["teacher"]),
+                                   sectors)  # (sectors, H)
+        out.append(thresholds[0] if sectors == 1 else thresholds)
         log(f"return calibration {name}: returns {returns['teacher'].mean():.3f} (teacher), "
-            f"{returns['student'].mean():.3f} (student), rows thresholded {int((out[-1] > -1).sum())}/{spec.shape[0]}")
+            f"{returns['student'].mean():.3f} (student), rows thresholded {int((thresholds > -1).sum())}/"
+            f"{thresholds.size}" + (f" (rows x {sectors} azimuth sectors)" if sectors > 1 else ""))
         if knots:
-            kept = returns["student"] & (sampled["student"][:, 0] > out[-1][None, :, None])
-            maps.append(row_range_knots(sampled["student"][:, 0], kept, sampled["teacher"][:, 0], returns["teacher"],
-                                        knots))
+            per_pixel = np.repeat(thresholds, spec.shape[1] // sectors, axis=0).T  # (H, W)
+            kept = returns["student"] & (sampled["student"][:, 0] > per_pixel[None])
+            fitted = fit_by_sector(lambda *a: row_range_knots(*a, knots),
+                                   (sampled["student"][:, 0], kept, sampled["teacher"][:, 0], returns["teacher"]), sectors)
+            maps.append(fitted[0] if sectors == 1 else fitted)
             mean = {who: float(sampled[who][:, 0][mask].mean()) for who, mask in
                     (("teacher", returns["teacher"]), ("student", kept))}
             log(f"range calibration {name}: mean encoded range of the returns {mean['teacher']:+.3f} (teacher), "

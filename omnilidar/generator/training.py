@@ -79,7 +79,7 @@ def use_training_device(name: str) -> None:
 # Distillation keys that only calibrate the finished student (omnilidar.generator.return_decision),
 # after its last step: a distillation whose settings differ only in these resumes the finished
 # student of the same work directory and calibrates it again, without distilling it again.
-_CALIBRATION_KEYS = ("return_calibration", "range_calibration", "calibration_sampler")
+_CALIBRATION_KEYS = ("return_calibration", "range_calibration", "calibration_sectors", "calibration_sampler")
 
 
 def trajectory_settings(settings: dict, distilling: bool = False) -> dict:
@@ -472,6 +472,9 @@ def train_generator(
     if dist is not None and dist["range_calibration"] and not dist["return_calibration"]:
         raise InputError(None, f"generator.distillation.range_calibration {dist['range_calibration']} maps the "
                                "student's returns on the return calibration's scans: set return_calibration > 0")
+    if dist is not None and settings["range_image"]["width"] % int(dist.get("calibration_sectors") or 1):
+        raise InputError(None, f"generator.distillation.calibration_sectors {dist['calibration_sectors']} does not "
+                               f"split range_image.width {settings['range_image']['width']} into equal azimuth sectors")
     check_calibration_sampler(dist)
     if dist is not None and len(calibration_samplers(dist)) > 1 and choose_calibration is None:
         raise InputError(None, "generator.distillation.calibration_sampler names candidates: the distillation "
@@ -653,6 +656,7 @@ def train_generator(
                                   "teacher_substeps": int(dist["teacher_substeps"]), "rounds": int(dist["rounds"]),
                                   "method": dist["method"], "return_calibration": int(dist["return_calibration"]),
                                   "range_calibration": int(dist["range_calibration"]),
+                                  "calibration_sectors": int(dist.get("calibration_sectors") or 1),
                                   "calibration_sampler": ", ".join(f"{n}:{k}" for n, k in calibration_samplers(dist))}
             if int(dist["return_calibration"]):
                 calibration = calibrate_returns(final, frozen, payload, cache, seed, choose_calibration,
