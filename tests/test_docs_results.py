@@ -80,6 +80,18 @@ def test_a_student_calibrated_on_candidates_says_which_setting_each_domain_took_
     assert "held-out real scans per domain (pi3det drone_val, pi3det quadruped_val, semantickitti val)" in short
 
 
+def test_a_student_calibrated_per_azimuth_sector_says_so():
+    doc = json.loads((ROOT / "docs" / "results" / "student_1step_candidates_heldout.json").read_text())
+    assert "azimuth sectors" not in readme.student_check(doc)  # per row: nothing to say
+    doc["student"]["calibration_sectors"] = 8
+    line = next(line for line in readme.student_check(doc).splitlines()
+                if line.startswith("- Its returns and ranges calibrated on"))
+    assert line.endswith(", per image row in each of 8 azimuth sectors.")
+    doc["student"]["calibration_sampler"] = "ddpm:32"  # one setting for every domain
+    assert "- Its returns and ranges calibrated, per image row in each of 8 azimuth sectors." in \
+        readme.student_check(doc).splitlines()
+
+
 def test_readme_and_docs_agree_with_the_results_kept_in_docs():
     """Every number README and docs/ quote in a results block is what docs/results/*.json holds."""
     pages = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

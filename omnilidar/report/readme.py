@@ -255,12 +255,16 @@ def _student_lines(doc: dict, teacher_settings: bool = True) -> list[str]:
                        if v["missed"] else "") for m, v in row.items()]
         lines.append(f"- The teacher's {setting} by the same rule: {'; '.join(verdicts)}.")
     chosen = (doc.get("student") or {}).get("calibration_sampler")
+    sectors = int((doc.get("student") or {}).get("calibration_sectors") or 1)
+    per_sector = f", per image row in each of {sectors} azimuth sectors" if sectors > 1 else ""
     if isinstance(chosen, dict):  # calibration candidates: the setting each domain was fitted on
         by = {}
         for domain, setting in chosen.items():
             by.setdefault(setting, []).append(domain)
         lines.append("- Its returns and ranges calibrated on " + "; ".join(f"{s.replace(':', ' x ')} in {', '.join(d)}"
-                                                                           for s, d in by.items()) + ".")
+                                                                           for s, d in by.items()) + per_sector + ".")
+    elif per_sector:
+        lines.append(f"- Its returns and ranges calibrated{per_sector}.")
     if check.get("speedup_over_default"):
         default = check["default_sampler"]
         lines.append(f"- Speed: {check['speedup_over_default']:.1f}x the generator's own sampler in that run "
