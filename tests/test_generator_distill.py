@@ -162,7 +162,8 @@ def test_a_tiny_distillation_writes_a_one_step_student(teacher):
     payload = torch.load(root / "student.pt", map_location="cpu", weights_only=True)
     assert payload["student"] == {"sampler": "ddim", "steps": 1, "teacher": str(root / "model.pt"),
                                   "teacher_steps": 4, "teacher_substeps": 1, "rounds": 2, "method": "progressive",
-                                  "return_calibration": 0, "range_calibration": 0, "calibration_sampler": "ddim:4"}
+                                  "return_calibration": 0, "range_calibration": 0, "calibration_sectors": 1,
+                                  "calibration_sampler": "ddim:4"}
     assert "return_thresholds" not in payload and "range_map" not in payload  # uncalibrated by default
     assert student_steps(settings["distillation"]) == 1
     prov = payload["provenance"]
