@@ -54,10 +54,11 @@ def main(argv: list[str] | None = None) -> None:
         ax.axhline(1.0, color="k", lw=1, ls="--")
         ax.set_ylim(bottom=max(ax.get_ylim()[0], -2.0))  # far below the line (Beam32) says nothing more
         ax.set_xticks(range(len(domains)), domains, rotation=30, ha="right")
-        ax.set_ylabel(f"{metric}: excess over the teacher's best / 2 std")
+        ax.set_ylabel(f"{metric}: excess over teacher / (2 std)")
         ax.set_title(f"{metric}: held at or below the dashed line (axis cut at -2)")
-    axes[0][0].legend(fontsize=7)
-    fig.tight_layout()
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(checks), 3), fontsize=8)
+    fig.tight_layout(rect=(0, 0.06 * ((len(checks) + 2) // 3), 1, 1))
     fig.savefig(args.out, dpi=110)
     print(f"wrote {args.out}")
 
