@@ -76,14 +76,19 @@ def epsilon_loss(denoiser: torch.nn.Module, image: torch.Tensor, domain: torch.T
     return (min_snr_weight(logsnr, gamma) * per_scan).mean()
 
 
+def sector_columns(width: int, sectors: int) -> list[slice]:
+    """The column blocks of ``sectors`` equal azimuth sectors of an image ``width`` columns wide."""
+    step = width // sectors
+    if step * sectors != width:
+        raise ValueError(f"{sectors} azimuth sectors do not split an image {width} columns wide")
+    return [slice(s * step, (s + 1) * step) for s in range(sectors)]
+
+
 def by_sector(apply, images: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
     """``apply(images, table[s])`` on each of S = len(table) equal azimuth sectors (column blocks) of
     the (B, C, H, W) images, put back together: a calibration fitted per sector."""
-    sectors = table.shape[0]
-    width = images.shape[-1] // sectors
-    if width * sectors != images.shape[-1]:
-        raise ValueError(f"{sectors} azimuth sectors do not split an image {images.shape[-1]} columns wide")
-    return torch.cat([apply(images[..., s * width:(s + 1) * width], table[s]) for s in range(sectors)], dim=-1)
+    return torch.cat([apply(images[..., cols], part)
+                      for cols, part in zip(sector_columns(images.shape[-1], table.shape[0]), table)], dim=-1)
 
 
 def apply_return_thresholds(images: torch.Tensor, thresholds: torch.Tensor) -> torch.Tensor:

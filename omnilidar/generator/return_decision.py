@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from omnilidar.generator.data import rng_for
-from omnilidar.generator.diffusion import generate
+from omnilidar.generator.diffusion import generate, sector_columns
 from omnilidar.generator.distill_steps import calibration_samplers, student_sampler, student_steps
 
 CALIBRATION_STREAM = 0xCA1B
@@ -82,10 +82,7 @@ def row_range_knots(student_range: np.ndarray, student_returns: np.ndarray, teac
 def fit_by_sector(fit, arrays: tuple[np.ndarray, ...], sectors: int) -> np.ndarray:
     """``fit(*arrays)`` on each of ``sectors`` equal azimuth sectors (column blocks) of the (N, H, W)
     ``arrays`` on its own, stacked: (sectors, ...) per-row fits."""
-    width = arrays[0].shape[-1] // sectors
-    if width * sectors != arrays[0].shape[-1]:
-        raise ValueError(f"{sectors} azimuth sectors do not split an image {arrays[0].shape[-1]} columns wide")
-    return np.stack([fit(*(a[..., s * width:(s + 1) * width] for a in arrays)) for s in range(sectors)])
+    return np.stack([fit(*(a[..., cols] for a in arrays)) for cols in sector_columns(arrays[0].shape[-1], sectors)])
 
 
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
