@@ -87,6 +87,11 @@ def test_a_student_calibrated_per_azimuth_sector_says_so():
     line = next(line for line in readme.student_check(doc).splitlines()
                 if line.startswith("- Its returns and ranges calibrated on"))
     assert line.endswith(", per image row in each of 8 azimuth sectors.")
+    doc["student"]["calibration_rule"] = "first_holding"  # the rule that chose each domain's setting
+    line = next(line for line in readme.student_check(doc).splitlines()
+                if line.startswith("- Its returns and ranges calibrated on"))
+    assert line.endswith("azimuth sectors (each domain's first candidate whose teacher scans hold the best of each "
+                         "metric on its training scans).")
     doc["student"]["calibration_sampler"] = "ddpm:32"  # one setting for every domain
     assert "- Its returns and ranges calibrated, per image row in each of 8 azimuth sectors." in \
         readme.student_check(doc).splitlines()

@@ -22,7 +22,7 @@ from omnilidar.generator.samplers import SPACINGS, make_scheduler, time_grid
 from omnilidar.generator.sampling import sample_shard, student_sampling
 from omnilidar.generator.schedule import BF16_MIN_LOGSNR, CosineLogSNRSchedule, alpha_sigma, bf16_safe, predict_x0
 from omnilidar.generator.text import build_prompt_cache, load_prompt_cache
-from omnilidar.generator.training import train_generator
+from omnilidar.generator.training import _CALIBRATION_KEYS, train_generator
 from test_generator_fixtures import TINY_DOMAINS, make_domains, one_torch_thread, tiny_settings  # noqa: F401
 from test_generator_training import FakeEncoder
 from workflow_helpers import copy_workflow, planned_jobs, snakemake
@@ -163,6 +163,7 @@ def test_a_tiny_distillation_writes_a_one_step_student(teacher):
     assert payload["student"] == {"sampler": "ddim", "steps": 1, "teacher": str(root / "model.pt"),
                                   "teacher_steps": 4, "teacher_substeps": 1, "rounds": 2, "method": "progressive",
                                   "return_calibration": 0, "range_calibration": 0, "calibration_sectors": 1,
+                                  "calibration_rule": "closest",
                                   "calibration_sampler": "ddim:4"}
     assert "return_thresholds" not in payload and "range_map" not in payload  # uncalibrated by default
     assert student_steps(settings["distillation"]) == 1
@@ -551,9 +552,15 @@ def test_the_long_last_round_check_extends_the_candidates_check_s_last_round_onl
     assert longer["lr_decay"] == "constant"  # the rate under which the longer round resumes
 
 
-def test_the_sector_check_changes_only_the_long_last_round_check_s_calibration(tmp_path):
-    """config/student_1step_sectors.yaml: the long-last-round check with a range map per azimuth
-    sector, a calibration key only (so it calibrates that check's finished distillation again)."""
+@pytest.mark.parametrize("overlays, key, before, after", [
+    (("config/student_1step_sectors.yaml",), "calibration_sectors", 1, 8),
+    (("config/student_1step_sectors.yaml", "config/student_1step_first_holding.yaml"), "calibration_rule", "closest",
+     "first_holding")])
+def test_the_calibration_checks_change_only_one_calibration_key(tmp_path, overlays, key, before, after):
+    """config/student_1step_sectors.yaml (a range map per azimuth sector over the long-last-round
+    check) and config/student_1step_first_holding.yaml (over that, another rule for the calibration
+    target) each change one calibration key, so each calibrates the check's finished distillation
+    again."""
     wf = copy_workflow(tmp_path)
     args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
             "config/student_1step_calibration_candidates.yaml", "config/student_1step_long_last_round.yaml")
@@ -562,10 +569,10 @@ def test_the_sector_check_changes_only_the_long_last_round_check_s_calibration(t
         out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args, *overlay).stdout
         return json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
 
-    base, sectored = distillation(), distillation("config/student_1step_sectors.yaml")
-    assert base["calibration_sectors"] == 1 and sectored["calibration_sectors"] == 8
-    assert {k: v for k, v in sectored.items() if k != "calibration_sectors"} == \
-        {k: v for k, v in base.items() if k != "calibration_sectors"}
+    base, changed = distillation(*overlays[:-1]), distillation(*overlays)
+    assert base[key] == before and changed[key] == after
+    assert {k: v for k, v in changed.items() if k != key} == {k: v for k, v in base.items() if k != key}
+    assert key in _CALIBRATION_KEYS
 
 
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):

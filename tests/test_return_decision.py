@@ -176,6 +176,29 @@ def test_of_several_calibration_settings_the_one_closest_to_the_training_scans_i
         assert pick == "own" and scores["own"]["MMD"] < scores["sparse"]["MMD"] and scores["own"]["JSD"] < 1e-6
 
 
+def test_first_holding_takes_the_first_candidate_that_holds_the_best_of_each_metric():
+    """A candidate a little off the reference's own scans holds them (its excess is within two
+    standard deviations over the groups), so listed first it is taken though the closest rule takes
+    the reference's own; one that drops half of every scan misses, and the next one is taken."""
+    from omnilidar.generator.unet import range_image_spec
+    from omnilidar.metrics.generation import closest_setting, first_holding_setting
+    from test_generation_targets import tiny_generator_settings
+
+    spec = range_image_spec(tiny_generator_settings())
+    rng = np.random.default_rng(0)
+    h, w = spec.shape
+    reference = np.stack([np.stack([rng.uniform(-0.6, 0.6, (h, w)), rng.uniform(-1, 1, (h, w))]) for _ in range(8)])
+    own, near, sparse = reference[::-1].copy(), reference[::-1].copy(), reference.copy()
+    near[:, 0] += rng.normal(0, 0.001, near[:, 0].shape)
+    sparse[:, :, h // 2:] = -1.0
+    sets = {"near": near, "own": own}
+    assert closest_setting(sets, reference, spec)[0] == "own"
+    pick, scores = first_holding_setting(sets, reference, spec)
+    assert pick == "near" and scores["near"]["excess"] <= 1.0 and scores["own"]["excess"] <= 1.0
+    pick, scores = first_holding_setting({"sparse": sparse, "own": own}, reference, spec)
+    assert pick == "own" and scores["sparse"]["excess"] > 1.0
+
+
 def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_the_closest(teacher, tmp_path):
     """calibration_sampler as a list: each domain's return decision and range map are fitted on the
     candidate whose scans lie closest to its training scans, the checkpoint says which, and the
@@ -184,7 +207,7 @@ def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_th
 
     from omnilidar.generator.data import load_range_image, read_domains_index
     from omnilidar.generator.unet import range_image_spec
-    from omnilidar.metrics.generation import closest_setting, closest_to_training_scans
+    from omnilidar.metrics.generation import choose_on_training_scans, closest_setting, first_holding_setting
 
     root, settings, index, prompts, plain = teacher
     work = tmp_path / "work"
@@ -200,7 +223,7 @@ def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_th
 
     from omnilidar.cli import main
 
-    # The workflow's command passes the rule (closest_to_training_scans).
+    # The workflow's command passes the rule (choose_on_training_scans, calibration_rule closest).
     assert main(["distill-generator", "--settings", json.dumps(calibrated), "--seed", "3", "--teacher",
                  str(root / "model.pt"), "--domains", str(index), "--prompts", str(prompts), "--work-dir", str(work),
                  "--out", str(tmp_path / "student.pt")]) == 0
@@ -225,11 +248,28 @@ def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_th
             if not np.array_equal(knots[0], knots[1]):
                 np.testing.assert_allclose(knots[1], np.quantile(chosen[:, 0, row][returns[:, row]], np.linspace(0, 1, 3)),
                                            rtol=1e-5, atol=1e-6)
+    # calibration_rule first_holding calibrates the same distillation again, without distilling, and
+    # takes in each domain the first candidate whose scans hold the best of each metric.
+    ruled = copy.deepcopy(calibrated)
+    ruled["distillation"]["calibration_rule"] = "first_holding"
+    assert main(["distill-generator", "--settings", json.dumps(ruled), "--seed", "3", "--teacher",
+                 str(root / "model.pt"), "--domains", str(index), "--prompts", str(prompts), "--work-dir", str(work),
+                 "--out", str(tmp_path / "ruled.pt")]) == 0
+    again = torch.load(tmp_path / "ruled.pt", weights_only=True)
+    assert again["resumed_from"] == plain["iterations"] == again["iterations"]
+    assert again["student"]["calibration_rule"] == "first_holding" and payload["student"]["calibration_rule"] == "closest"
+    for d, name in enumerate(TINY_DOMAINS):
+        spec, entry = domain_points_spec(payload["config"], payload, name), cache["domains"][name]
+        drawn = {f"{n}:{k}": generate(gen, d, entry["tokens"][0], entry["mask"][0], calibration_seeds(3, name, 4),
+                                      spec.shape, n, k).numpy() for n, k in candidates}
+        training = np.stack([load_range_image(f, (h, w)) for f in domains[name]["files"]])
+        assert again["student"]["calibration_sampler"][name] == \
+            first_holding_setting(drawn, training, range_image_spec(payload["config"]))[0]
     twice = copy.deepcopy(calibrated)
     twice["distillation"]["calibration_sampler"] = [{"sampler": "ddpm", "steps": 3}] * 2
     with pytest.raises(InputError, match="names a setting twice"):
         train_generator(twice, index, prompts, tmp_path / "twice", tmp_path / "twice.pt", seed=3, teacher=root / "model.pt",
-                        choose_calibration=closest_to_training_scans(index, range_image_spec(settings)))
+                        choose_calibration=choose_on_training_scans(index, range_image_spec(settings)))
 
 
 def test_a_checkpoint_whose_thresholds_do_not_fit_its_image_is_one_clear_error(teacher, tmp_path):

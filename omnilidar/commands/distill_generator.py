@@ -29,16 +29,17 @@ def run(args) -> int:
     from omnilidar.generator.presets import apply_preset
     from omnilidar.generator.training import train_generator
     from omnilidar.generator.unet import range_image_spec
-    from omnilidar.metrics.generation import closest_to_training_scans
+    from omnilidar.metrics.generation import choose_on_training_scans
     from omnilidar.devices import set_threads
 
     set_threads(args.threads)
     settings = validate(dict(args.settings), "generator.schema.yaml", source="--settings")
     if args.preset:
         settings = apply_preset(settings, args.preset)
-    # Calibration candidates (calibration_sampler as a list): each domain takes the closest to its
-    # training scans; the index is read for that only.
-    choose = (closest_to_training_scans(args.domains, range_image_spec(settings))
+    # Calibration candidates (calibration_sampler as a list): each domain takes one by the
+    # distillation's calibration_rule against its training scans; the index is read for that only.
+    choose = (choose_on_training_scans(args.domains, range_image_spec(settings),
+                                       settings["distillation"].get("calibration_rule") or "closest")
               if len(calibration_samplers(settings["distillation"])) > 1 else None)
     summary = train_generator(settings, args.domains, args.prompts, args.work_dir, args.out, seed=args.seed,
                               until=args.until, teacher=args.teacher, choose_calibration=choose)

@@ -90,26 +90,6 @@ def downstream_curve(path) -> tuple[list[dict], dict | None]:
     return rows, {"source": str(path), **(doc.get("setup") or {})}
 
 
-def group_scores(real, generated, extractors, groups: int, metrics: list[str]) -> dict:
-    """Each metric's mean and std over ``groups`` disjoint groups of the generated scans (their
-    sampling seeds differ), each scored against the whole real set."""
-    import numpy as np
-
-    from omnilidar.metrics.generation import compare
-
-    size = generated.num_scans // groups
-    runs = [compare(real, generated.rows(slice(g * size, (g + 1) * size)), extractors) for g in range(groups)]
-    out = {"weights": runs[0]["weights"], "comparable_with_paper": runs[0]["comparable_with_paper"],
-           "scans_per_group": size}
-    for m in metrics:
-        vals = [r.get("MMD_1e4" if m == "MMD" else m) for r in runs]
-        ok = all(v is not None for v in vals)
-        out[m] = float(np.mean(vals)) if ok else None
-        out[f"{m}_std"] = float(np.std(vals, ddof=1)) if ok and groups > 1 else None
-        out[f"{m}_groups"] = vals
-    return out
-
-
 def best_per_budget(points: list[dict], metrics: list[str]) -> dict:
     """{network evaluations: {metric: the point (solver and spacing) with the lowest mean}}."""
     best = {}
@@ -214,7 +194,7 @@ def run(args) -> int:
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors import METRIC_NAMES
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
-    from omnilidar.metrics.generation import real_domain_images, sample_images, set_features
+    from omnilidar.metrics.generation import group_scores, real_domain_images, sample_images, set_features
     from omnilidar.metrics.sample_sets import generated_set, parse_sample_sets
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import collect_weights, pareto_front, tradeoff_figure, write_outputs

@@ -95,8 +95,9 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
     S > 1 both per azimuth sector: (domains, S, H) and (domains, S, H, 2, K)); ``payload``: the student's checkpoint contents (its settings,
     domains and their back-projection geometry). With several candidate settings, ``choose(domain,
     {"sampler:steps": scans})`` -> (the one to calibrate on, its scores) decides per domain (the
-    command passes :func:`omnilidar.metrics.generation.closest_to_training_scans`: the candidate whose
-    scans lie closest to the domain's training scans), and ``calibration_choice`` says which
+    command passes :func:`omnilidar.metrics.generation.choose_on_training_scans`: by
+    ``calibration_rule``, the candidate whose scans lie closest to the domain's training scans, or the
+    first whose scans hold the best candidate of each metric there), and ``calibration_choice`` says which
     ({domain: "sampler:steps"})."""
     from omnilidar.data.range_image import decode
     from omnilidar.generator.sampling import domain_points_spec

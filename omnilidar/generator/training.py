@@ -79,7 +79,8 @@ def use_training_device(name: str) -> None:
 # Distillation keys that only calibrate the finished student (omnilidar.generator.return_decision),
 # after its last step: a distillation whose settings differ only in these resumes the finished
 # student of the same work directory and calibrates it again, without distilling it again.
-_CALIBRATION_KEYS = ("return_calibration", "range_calibration", "calibration_sectors", "calibration_sampler")
+_CALIBRATION_KEYS = ("return_calibration", "range_calibration", "calibration_sectors", "calibration_sampler",
+                     "calibration_rule")
 
 
 def trajectory_settings(settings: dict, distilling: bool = False) -> dict:
@@ -657,6 +658,7 @@ def train_generator(
                                   "method": dist["method"], "return_calibration": int(dist["return_calibration"]),
                                   "range_calibration": int(dist["range_calibration"]),
                                   "calibration_sectors": int(dist.get("calibration_sectors") or 1),
+                                  "calibration_rule": dist.get("calibration_rule") or "closest",
                                   "calibration_sampler": ", ".join(f"{n}:{k}" for n, k in calibration_samplers(dist))}
             if int(dist["return_calibration"]):
                 calibration = calibrate_returns(final, frozen, payload, cache, seed, choose_calibration,

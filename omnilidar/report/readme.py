@@ -261,8 +261,11 @@ def _student_lines(doc: dict, teacher_settings: bool = True) -> list[str]:
         by = {}
         for domain, setting in chosen.items():
             by.setdefault(setting, []).append(domain)
+        rule = (doc.get("student") or {}).get("calibration_rule") or "closest"
+        how = {"closest": "", "first_holding": " (each domain's first candidate whose teacher scans hold the best "
+                                                "of each metric on its training scans)"}[rule]
         lines.append("- Its returns and ranges calibrated on " + "; ".join(f"{s.replace(':', ' x ')} in {', '.join(d)}"
-                                                                           for s, d in by.items()) + per_sector + ".")
+                                                                           for s, d in by.items()) + per_sector + how + ".")
     elif per_sector:
         lines.append(f"- Its returns and ranges calibrated{per_sector}.")
     if check.get("speedup_over_default"):
