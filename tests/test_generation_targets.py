@@ -247,6 +247,11 @@ def test_sampler_tradeoff_scores_against_the_reference_scans_and_says_whether_th
 
     assert "2 held-out real scans per domain (semantickitti val)" in reference_phrase(held_out)
     assert "training scans" in reference_phrase(same) and "training scans" in reference_phrase({"real_scans": 8})
+    assert held_out["real_scans_per_domain"] == {"Vehicle": 2}
+    # A held-out set with fewer scans than the study asks for is scored on what it has, and says so.
+    fewer = study("fewer", "--reference", str(_domains_tree(tmp_path / "one", {"Vehicle": held[:1]}, "semantickitti", "val")))
+    assert fewer["real_scans_per_domain"] == {"Vehicle": 1}
+    assert "scored against 2 (Vehicle 1) held-out real scans per domain" in reference_phrase(fewer)
 
 
 def test_every_teacher_setting_is_held_to_the_best_by_the_student_s_rule():

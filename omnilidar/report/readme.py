@@ -232,6 +232,9 @@ def reference_phrase(doc: dict) -> str:
     """Which real scans a sampler study scored against (results without a reference record predate
     the held-out sets and scored against the generator's training scans)."""
     ref, n = doc.get("reference"), doc.get("real_scans")
+    fewer = {d: k for d, k in (doc.get("real_scans_per_domain") or {}).items() if k < n}  # a domain's set ran out
+    if fewer:
+        n = f"{n} ({', '.join(f'{d} {k}' for d, k in fewer.items())})"
     if ref and ref.get("held_out"):
         return f"scored against {n} held-out real scans per domain ({', '.join(sorted(set(ref['sources'].values())))})"
     return f"scored against {n} of each domain's training scans (the generator's own)"
