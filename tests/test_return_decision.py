@@ -265,6 +265,12 @@ def test_a_distillation_with_calibration_candidates_calibrates_each_domain_on_th
         training = np.stack([load_range_image(f, (h, w)) for f in domains[name]["files"]])
         assert again["student"]["calibration_sampler"][name] == \
             first_holding_setting(drawn, training, range_image_spec(payload["config"]))[0]
+    one = copy.deepcopy(ruled)  # seed groups of one scan's set: one clear error before anything runs
+    one["distillation"]["return_calibration"] = 1
+    with pytest.raises(InputError, match="first_holding .*return_calibration >= 2"):
+        train_generator(one, index, prompts, tmp_path / "one", tmp_path / "one.pt", seed=3, teacher=root / "model.pt",
+                        choose_calibration=choose_on_training_scans(index, range_image_spec(settings), "first_holding"))
+    assert not (tmp_path / "one.pt").exists()
     twice = copy.deepcopy(calibrated)
     twice["distillation"]["calibration_sampler"] = [{"sampler": "ddpm", "steps": 3}] * 2
     with pytest.raises(InputError, match="names a setting twice"):

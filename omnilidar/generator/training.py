@@ -394,6 +394,9 @@ def check_calibration_sampler(dist: dict | None) -> None:
     if not dist["return_calibration"]:
         raise InputError(None, f"generator.distillation.calibration_sampler {', '.join(f'{n}:{k}' for n, k in candidates)} "
                                "samples the return calibration's scans: set return_calibration > 0")
+    if len(candidates) > 1 and dist.get("calibration_rule") == "first_holding" and int(dist["return_calibration"]) < 2:
+        raise InputError(None, "generator.distillation.calibration_rule first_holding scores each candidate's scans "
+                               "in seed groups: set return_calibration >= 2")
 
 
 def check_last_round_terms(dist: dict | None) -> None:
