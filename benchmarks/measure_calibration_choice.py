@@ -64,26 +64,20 @@ def group_stats(real, images: np.ndarray, spec) -> dict:
     return group_scores(real, set_features(images, spec, {}, 8), {}, GROUPS, ["JSD", "MMD"])
 
 
-def teacher_scans(teacher, payload: dict, cache_entry: dict, domain: str, label: str, cache: Path) -> np.ndarray:
-    """The teacher's calibration scans of ``domain`` with setting ``label`` (cached)."""
-    import torch
-
-    from omnilidar.generator.diffusion import generate
-    from omnilidar.generator.return_decision import calibration_seeds
-    from omnilidar.generator.sampling import domain_points_spec
-    from omnilidar.generator.schedule import CosineLogSNRSchedule
+def teacher_scans(teacher, payload: dict, prompts: dict, domain: str, label: str, cache: Path) -> np.ndarray:
+    """The teacher's calibration scans of ``domain`` with setting ``label``, as the distillation draws
+    them (``calibration_scans``), cached."""
+    from omnilidar.generator.return_decision import calibration_scans
 
     scans, seed = int(payload["student"]["return_calibration"]), int(payload["seed"])
     how, steps = label.split(":")
     path = cache / f"{how}_{steps}_{domain}_n{scans}_s{seed}.npy"
     if path.is_file():
         return np.load(path)
-    d = payload["config"]["diffusion"]
-    spec = domain_points_spec(payload["config"], payload, domain)
+    import torch
+
     with torch.no_grad():
-        images = generate(teacher, payload["domains"].index(domain), cache_entry["tokens"][0], cache_entry["mask"][0],
-                          calibration_seeds(seed, domain, scans), spec.shape, how, int(steps),
-                          CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])).numpy()
+        images = calibration_scans(teacher, payload, prompts, domain, how, int(steps), seed)
     cache.mkdir(parents=True, exist_ok=True)
     np.save(path, images)
     return images
@@ -117,7 +111,7 @@ def measure(args) -> dict:
     for domain in payload["domains"]:
         references = {"training": training[domain]["files"][:REFERENCE_SCANS],
                       "held-out unused": heldout[domain]["files"][args.check_scans:]}
-        teachers = {label: teacher_scans(teacher, payload, prompts["domains"][domain], domain, label, Path(args.cache))
+        teachers = {label: teacher_scans(teacher, payload, prompts, domain, label, Path(args.cache))
                     for label in {*calibrated, *targets.values()}}
         drawn = {label: sample_images(net, p, prompts, domain, args.student_scans, p["student"]["sampler"],
                                       int(p["student"]["steps"]), args.seed)[0] for label, (net, p) in students.items()}

@@ -117,8 +117,11 @@ def teacher_best(teachers: list[dict], m: str) -> dict | None:
 
 def holds(point: dict, best: dict, m: str, name: str) -> dict:
     """Domain by domain, whether ``point`` holds ``best`` on ``m``: worse by at most two standard
-    deviations of the difference (the two settings' seed-group spreads combined)."""
+    deviations of the difference (the two settings' seed-group spreads combined,
+    :func:`omnilidar.metrics.generation.excess_in_spreads`)."""
     import math
+
+    from omnilidar.metrics.generation import excess_in_spreads
 
     out = {}
     for d, mine in point["per_domain"].items():
@@ -127,7 +130,7 @@ def holds(point: dict, best: dict, m: str, name: str) -> dict:
         spread = math.hypot(*spreads) if None not in spreads else None
         excess = mine[m] - theirs[m]
         out[d] = {name: mine[m], "teacher": theirs[m], "excess": excess, "spread": spread,
-                  "held": bool(spread is not None and excess <= 2 * spread)}
+                  "held": bool(spread is not None and excess_in_spreads(mine, theirs, m) <= 1.0)}
     return out
 
 

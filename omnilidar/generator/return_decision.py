@@ -85,6 +85,22 @@ def fit_by_sector(fit, arrays: tuple[np.ndarray, ...], sectors: int) -> np.ndarr
     return np.stack([fit(*(a[..., cols] for a in arrays)) for cols in sector_columns(arrays[0].shape[-1], sectors)])
 
 
+def calibration_scans(net: torch.nn.Module, payload: dict, prompt_cache: dict, domain: str, how: str, steps: int,
+                      seed: int, batch: int = 8) -> np.ndarray:
+    """The ``return_calibration`` scans (N, 2, H, W) of ``domain`` that ``net`` (the teacher or the
+    student of ``payload``) draws with sampler ``how`` x ``steps`` on the calibration's own noise."""
+    from omnilidar.generator.sampling import domain_points_spec
+    from omnilidar.generator.schedule import CosineLogSNRSchedule
+
+    settings = payload["config"]
+    d, scans = settings["diffusion"], int(settings["distillation"]["return_calibration"])
+    shape, entry = domain_points_spec(settings, payload, domain).shape, prompt_cache["domains"][domain]
+    seeds, index = calibration_seeds(seed, domain, scans), payload["domains"].index(domain)
+    schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
+    return np.concatenate([generate(net, index, entry["tokens"][0], entry["mask"][0], seeds[i:i + batch], shape, how,
+                                    steps, schedule).numpy() for i in range(0, scans, batch)])
+
+
 def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payload: dict, prompt_cache: dict,
                       seed: int, choose=None, batch: int = 8, log=print) -> dict:
     """The student's calibration against ``teacher`` (the trained generator with DDIM x
@@ -101,12 +117,9 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
     ({domain: "sampler:steps"})."""
     from omnilidar.data.range_image import decode
     from omnilidar.generator.sampling import domain_points_spec
-    from omnilidar.generator.schedule import CosineLogSNRSchedule
 
     settings = payload["config"]
-    distillation, d = settings["distillation"], settings["diffusion"]
-    schedule = CosineLogSNRSchedule(d["logsnr_min"], d["logsnr_max"])
-    scans, sampler = int(distillation["return_calibration"]), student_sampler(distillation)
+    distillation, sampler = settings["distillation"], student_sampler(settings["distillation"])
     candidates = calibration_samplers(distillation)
     if len(candidates) > 1 and choose is None:
         raise ValueError("several calibration candidates need a rule that chooses between them (choose)")
@@ -114,14 +127,11 @@ def calibrate_returns(student: torch.nn.Module, teacher: torch.nn.Module, payloa
     sectors = int(distillation.get("calibration_sectors") or 1)
     student, teacher = student.eval(), teacher.eval()
     out, maps, choice = [], [], {}
-    for index, name in enumerate(payload["domains"]):
-        spec, entry = domain_points_spec(settings, payload, name), prompt_cache["domains"][name]
-        seeds = calibration_seeds(seed, name, scans)
+    for name in payload["domains"]:
+        spec = domain_points_spec(settings, payload, name)
 
         def draw(net, how, steps):
-            return np.concatenate([
-                generate(net, index, entry["tokens"][0], entry["mask"][0], seeds[i:i + batch], spec.shape, how,
-                         steps, schedule).numpy() for i in range(0, scans, batch)])
+            return calibration_scans(net, payload, prompt_cache, name, how, steps, seed, batch)
 
         drawn = {f"{how}:{steps}": draw(teacher, how, steps) for how, steps in candidates}
         choice[name] = next(iter(drawn))
