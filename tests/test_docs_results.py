@@ -239,6 +239,27 @@ def test_the_sampler_grid_names_the_best_solver_per_budget_and_the_students_chec
     assert "the 2-step student is within two standard deviations" in text and "Recommended" in text
 
 
+def test_the_sampler_grid_names_its_real_scans_and_the_teacher_settings_that_hold_every_domain():
+    import copy
+
+    doc = json.loads((ROOT / "docs/results/sampler_grid.json").read_text())
+    text = readme.sampler_grid(doc)
+    assert "held-out real scans per domain" in text and "training scans" not in text
+    line = next(row for row in text.splitlines() if row.startswith("- Teacher settings within"))
+    held = line.split(": ", 1)[1].split(" (of ")[0].split(", ")
+    checks = doc["teacher_settings_check"]
+    assert held and all(not v["missed"] for s in held for v in checks[s].values())
+    assert not any("by the same rule" in row for row in text.splitlines())  # one line, not one per setting
+    # A held setting that misses one domain leaves the line; the training-scan phrase returns without
+    # a held-out reference.
+    worse = copy.deepcopy(doc)
+    worse["teacher_settings_check"][held[0]]["JSD"]["missed"] = {"Fog": 0.1}
+    worse.pop("reference")
+    text = readme.sampler_grid(worse)
+    assert held[0] + "," not in text and not text.rstrip().endswith(f": {held[0]} (of {len(checks)}).")
+    assert "of each domain's training scans (the generator's own)" in text
+
+
 def test_step_times_reads_each_trainers_logged_steps_and_divergence(tmp_path):
     """benchmarks/step_times.py on a run's job logs: per trainer the logged step times, the jobs whose
     loss went non-finite, and the machine the run happened on (not this one)."""

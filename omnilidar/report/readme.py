@@ -302,13 +302,19 @@ def sampler_grid(doc: dict) -> str:
         lines.append(f"| {budget} | " + " | ".join(cells) + " |")
     settings = sorted({p["sampler"] for p in doc["points"]})
     lines += ["", f"{len(doc['points'])} settings of {len(settings)} solvers ({', '.join(settings)}); domains "
-                  f"{', '.join(doc['domains'])}; each metric the mean over {doc['seeds']['seed_groups']} groups of "
+                  f"{', '.join(doc['domains'])}, {reference_phrase(doc)}; each metric the mean over {doc['seeds']['seed_groups']} groups of "
                   f"scans with distinct sampling seeds +- their spread; {doc['device']}. Recommended "
                   f"({doc['recommend_rule']}): "
               + "; ".join(f"{m} {r['sampler']} x {r['steps']} ({r['seconds_per_scan']:.3g} s per scan)"
                           for m, r in doc["recommended"].items()) + "."]
     if doc.get("student_check"):
-        lines += student_check(doc).split("\n")[len(sampler_points(doc).split("\n")):]
+        lines += ["", *_student_lines(doc, teacher_settings=False)]
+    held_all = [setting for setting, row in (doc.get("teacher_settings_check") or {}).items()
+                if all(not v["missed"] for v in row.values())]
+    if doc.get("teacher_settings_check"):  # the grid's settings by the student's rule, one line
+        lines.append(f"- Teacher settings within two standard deviations of the best in every domain on "
+                     f"{' and '.join(doc['student_check']['decided_by'])}: {', '.join(held_all) or 'none'} "
+                     f"(of {len(doc['teacher_settings_check'])}).")
     return "\n".join(lines)
 
 
