@@ -309,9 +309,9 @@ def sampler_grid(doc: dict) -> str:
                           for m, r in doc["recommended"].items()) + "."]
     if doc.get("student_check"):
         lines += ["", *_student_lines(doc, teacher_settings=False)]
-    held_all = [setting for setting, row in (doc.get("teacher_settings_check") or {}).items()
-                if all(not v["missed"] for v in row.values())]
     if doc.get("teacher_settings_check"):  # the grid's settings by the student's rule, one line
+        held_all = [setting for setting, row in doc["teacher_settings_check"].items()
+                    if all(not v["missed"] for v in row.values())]
         lines.append(f"- Teacher settings within two standard deviations of the best in every domain on "
                      f"{' and '.join(doc['student_check']['decided_by'])}: {', '.join(held_all) or 'none'} "
                      f"(of {len(doc['teacher_settings_check'])}).")
