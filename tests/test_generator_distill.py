@@ -575,6 +575,49 @@ def test_the_calibration_checks_change_only_one_calibration_key(tmp_path, overla
     assert key in _CALIBRATION_KEYS
 
 
+_RECIPE = ("config/student_1step.yaml", "config/student_1step_calibration_candidates.yaml",
+           "config/student_1step_long_last_round.yaml", "config/student_1step_sectors.yaml",
+           "config/student_1step_first_holding.yaml")
+
+
+def _planned_settings(wf, *configfiles):
+    """The distillation and sampler-study settings a dry run of results/tradeoff.json plans."""
+    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", "--configfile", *configfiles).stdout
+    distill = re.search(r"distill-generator .*--settings '(\{.*?\})'", out)
+    tradeoff = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])["tradeoff"]
+    return json.loads(distill[1])["distillation"] if distill else None, tradeoff, out
+
+
+def test_the_recipe_grid_puts_the_recipe_s_student_in_the_full_grid(tmp_path):
+    """config/sampler_grid_recipe.yaml, laid last over the recipe's overlays and the grid (the
+    commands on their first lines): the grid's solvers, domains, scans and seed groups, so its teacher
+    sets are the grid run's, with the first_holding recipe's student instead of the schema's default."""
+    wf = copy_workflow(tmp_path)
+    default, grid, grid_out = _planned_settings(wf, "config/config.yaml", "config/sampler_grid.yaml")
+    recipe, _, _ = _planned_settings(wf, "config/config.yaml", "config/student.yaml", *_RECIPE)
+    distill, mixed, out = _planned_settings(wf, "config/config.yaml", "config/student.yaml", *_RECIPE,
+                                            "config/sampler_grid.yaml", "config/sampler_grid_recipe.yaml")
+    assert distill == recipe != default and distill["calibration_rule"] == "first_holding"
+    assert mixed == grid
+
+    def teacher_sets(text):
+        return set(re.findall(r"--samples ((?!student)[\w-]+/\w+=\S+)", text))
+    assert teacher_sets(out) == teacher_sets(grid_out) and len(teacher_sets(out)) > 30
+
+
+def test_the_twelve_group_check_scores_the_recipe_s_student_on_every_domain(tmp_path):
+    """config/student_1step_check_g12.yaml over the recipe: the same distillation (its student is not
+    distilled again), the three teacher rows beside the student on all eight domains, 24 scans in 12
+    seed groups, against the held-out sets (the command on its first lines)."""
+    wf = copy_workflow(tmp_path)
+    recipe, _, _ = _planned_settings(wf, "config/config.yaml", "config/student.yaml", *_RECIPE)
+    distill, check, out = _planned_settings(wf, "config/config.yaml", *_RECIPE, "config/student_1step_check_g12.yaml")
+    assert distill == recipe
+    assert check["samplers"] == {"ddpm": [32], "unipc": [10], "unipc_logsnr": [4]}
+    assert (check["domains"], check["scans"], check["seed_groups"], check["student"]) == ([], 24, 12, True)
+    assert "--reference data/domains_heldout/index.json" in out and "--gda-curve" not in out
+
+
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
     """diffusion.prior domain_mean: a student of another width, which cannot load its teacher's state,
     still takes the teacher's domain means, so both denoise the same residual."""
