@@ -616,6 +616,7 @@ def test_the_twelve_group_check_scores_the_recipe_s_student_on_every_domain(tmp_
     assert check["samplers"] == {"ddpm": [32], "unipc": [10], "unipc_logsnr": [4]}
     assert (check["domains"], check["scans"], check["seed_groups"], check["student"]) == ([], 24, 12, True)
     assert "--reference data/domains_heldout/index.json" in out and "--gda-curve" not in out
+    assert json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])["scans_per_set"] == 16
 
 
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
