@@ -445,7 +445,7 @@ RENDERERS = {"semkitti_1pct": semkitti_1pct, "gda_decomposition": gda_decomposit
              "effects_tradeoff": effects_tradeoff,
              "sampler_grid": sampler_grid}
 
-PREFIXES = {"bench_": benchmark, "student_": student_check, "samplers_": sampler_points,
+PREFIXES = {"bench_": benchmark, "student_": student_check, "samplers_": sampler_points, "sampler_grid_": sampler_grid,
             "gda_decomposition_": gda_decomposition,
             "gda_budget_": gda_budget,
             "run_cost_": run_cost}
