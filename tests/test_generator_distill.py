@@ -581,11 +581,11 @@ _RECIPE = ("config/student_1step.yaml", "config/student_1step_calibration_candid
 
 
 def _planned_settings(wf, *configfiles):
-    """The distillation and sampler-study settings a dry run of results/tradeoff.json plans."""
+    """The distillation and sampler-study settings (the evaluation section) a dry run of results/tradeoff.json plans."""
     out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", "--configfile", *configfiles).stdout
     distill = re.search(r"distill-generator .*--settings '(\{.*?\})'", out)
-    tradeoff = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])["tradeoff"]
-    return json.loads(distill[1])["distillation"] if distill else None, tradeoff, out
+    study = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])
+    return json.loads(distill[1])["distillation"] if distill else None, study, out
 
 
 def test_the_recipe_grid_puts_the_recipe_s_student_in_the_full_grid(tmp_path):
@@ -598,7 +598,7 @@ def test_the_recipe_grid_puts_the_recipe_s_student_in_the_full_grid(tmp_path):
     distill, mixed, out = _planned_settings(wf, "config/config.yaml", "config/student.yaml", *_RECIPE,
                                             "config/sampler_grid.yaml", "config/sampler_grid_recipe.yaml")
     assert distill == recipe != default and distill["calibration_rule"] == "first_holding"
-    assert mixed == grid
+    assert mixed["tradeoff"] == grid["tradeoff"]
 
     def teacher_sets(text):
         return set(re.findall(r"--samples ((?!student)[\w-]+/\w+=\S+)", text))
@@ -611,12 +611,13 @@ def test_the_twelve_group_check_scores_the_recipe_s_student_on_every_domain(tmp_
     seed groups, against the held-out sets (the command on its first lines)."""
     wf = copy_workflow(tmp_path)
     recipe, _, _ = _planned_settings(wf, "config/config.yaml", "config/student.yaml", *_RECIPE)
-    distill, check, out = _planned_settings(wf, "config/config.yaml", *_RECIPE, "config/student_1step_check_g12.yaml")
+    distill, study, out = _planned_settings(wf, "config/config.yaml", *_RECIPE, "config/student_1step_check_g12.yaml")
+    check = study["tradeoff"]
     assert distill == recipe
     assert check["samplers"] == {"ddpm": [32], "unipc": [10], "unipc_logsnr": [4]}
     assert (check["domains"], check["scans"], check["seed_groups"], check["student"]) == ([], 24, 12, True)
     assert "--reference data/domains_heldout/index.json" in out and "--gda-curve" not in out
-    assert json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])["scans_per_set"] == 16
+    assert study["scans_per_set"] == 16
 
 
 def test_a_narrow_student_of_a_prior_teacher_centres_on_the_teachers_means(teacher, tmp_path):
