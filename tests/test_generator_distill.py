@@ -480,19 +480,25 @@ def test_the_student_check_trains_no_segmentor_and_the_full_study_keeps_its_curv
     assert full["gda_curve"] == 1 and full["train_labeler"] == 1
 
 
+def _planned_settings(wf, *configfiles):
+    """The distillation and sampler-study settings (the evaluation section) a dry run of results/tradeoff.json plans."""
+    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", "--configfile", *configfiles).stdout
+    distill = re.search(r"distill-generator .*--settings '(\{.*?\})'", out)
+    study = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])
+    return json.loads(distill[1])["distillation"] if distill else None, study, out
+
+
 def test_the_one_step_recipe_distils_a_calibrated_pruned_student_and_checks_it_on_12_scans(tmp_path):
     """config/student_1step.yaml (laid over config/student.yaml): the distillation job gets the
     recipe's settings and the check its 12 scans in 4 groups."""
     wf = copy_workflow(tmp_path)
-    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml")
-    assert planned_jobs(wf, "results/tradeoff.json", *args)["distill_generator"] == 1
-    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args).stdout
-    distill = json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
+    configfiles = ("config/test.yaml", "config/student.yaml", "config/student_1step.yaml")
+    assert planned_jobs(wf, "results/tradeoff.json", "--configfile", *configfiles)["distill_generator"] == 1
+    distill, tradeoff, _ = _planned_settings(wf, *configfiles)
     assert {k: distill[k] for k in ("teacher_steps", "teacher_substeps", "rounds", "student_res_blocks",
                                     "return_calibration", "range_calibration")} == {
         "teacher_steps": 32, "teacher_substeps": 2, "rounds": 5, "student_res_blocks": 1, "return_calibration": 8,
         "range_calibration": 17}
-    tradeoff = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])
     assert (tradeoff["tradeoff"]["scans"], tradeoff["tradeoff"]["seed_groups"]) == (12, 4)
 
 
@@ -500,13 +506,12 @@ def test_the_best_teacher_check_on_every_domain_samples_its_settings_in_each(tmp
     """config/student_1step_best_teacher_8domains.yaml: the best-teacher check's settings and the
     recipe's student in every domain the generator knows, instead of three."""
     wf = copy_workflow(tmp_path)
-    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
-            "config/student_1step_best_teacher.yaml")
+    configfiles = ("config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
+                   "config/student_1step_best_teacher.yaml")
 
     def check(*overlay):
-        out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args, *overlay).stdout
-        tradeoff = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])["tradeoff"]
-        return tradeoff, set(re.findall(r"--samples ([\w-]+)/(\w+)=", out))
+        _, study, out = _planned_settings(wf, *configfiles, *overlay)
+        return study["tradeoff"], set(re.findall(r"--samples ([\w-]+)/(\w+)=", out))
 
     three, given_three = check()
     every, given_every = check("config/student_1step_best_teacher_8domains.yaml")
@@ -521,13 +526,11 @@ def test_the_calibration_candidates_check_fits_each_domain_on_the_closer_best_se
     """config/student_1step_calibration_candidates.yaml: the recipe's distillation with both best
     teacher settings as calibration candidates, held against them in every domain, on the held-out sets."""
     wf = copy_workflow(tmp_path)
-    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
-            "config/student_1step_calibration_candidates.yaml")
-    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args).stdout
-    distill = json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
+    distill, study, out = _planned_settings(wf, "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
+                                            "config/student_1step_calibration_candidates.yaml")
     assert distill["calibration_sampler"] == [{"sampler": "ddpm", "steps": 32}, {"sampler": "unipc_logsnr", "steps": 4}]
     assert distill["rounds"] == 5 and distill["range_calibration"] == 17  # the recipe's
-    tradeoff = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])["tradeoff"]
+    tradeoff = study["tradeoff"]
     assert tradeoff["domains"] == [] and {"ddpm", "unipc_logsnr"} <= set(tradeoff["samplers"])
     assert "--reference data/domains_heldout/index.json" in out
     rows = set(re.findall(r"--samples ([\w-]+)/(\w+)=", out))
@@ -538,12 +541,11 @@ def test_the_long_last_round_check_extends_the_candidates_check_s_last_round_onl
     """config/student_1step_long_last_round.yaml: the calibration-candidates check with a last round
     three times as long, nothing else changed (so it resumes that check's finished distillation)."""
     wf = copy_workflow(tmp_path)
-    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
-            "config/student_1step_calibration_candidates.yaml")
+    configfiles = ("config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
+                   "config/student_1step_calibration_candidates.yaml")
 
     def distillation(*overlay):
-        out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args, *overlay).stdout
-        return json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
+        return _planned_settings(wf, *configfiles, *overlay)[0]
 
     base, longer = distillation(), distillation("config/student_1step_long_last_round.yaml")
     assert longer["final_round_iterations"] == 3 * base["iterations_per_round"]
@@ -562,12 +564,11 @@ def test_the_calibration_checks_change_only_one_calibration_key(tmp_path, overla
     target) each change one calibration key, so each calibrates the check's finished distillation
     again."""
     wf = copy_workflow(tmp_path)
-    args = ("--configfile", "config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
-            "config/student_1step_calibration_candidates.yaml", "config/student_1step_long_last_round.yaml")
+    configfiles = ("config/test.yaml", "config/student.yaml", "config/student_1step.yaml",
+                   "config/student_1step_calibration_candidates.yaml", "config/student_1step_long_last_round.yaml")
 
     def distillation(*overlay):
-        out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", *args, *overlay).stdout
-        return json.loads(re.search(r"distill-generator .*--settings '(\{.*?\})'", out)[1])["distillation"]
+        return _planned_settings(wf, *configfiles, *overlay)[0]
 
     base, changed = distillation(*overlays[:-1]), distillation(*overlays)
     assert base[key] == before and changed[key] == after
@@ -578,14 +579,6 @@ def test_the_calibration_checks_change_only_one_calibration_key(tmp_path, overla
 _RECIPE = ("config/student_1step.yaml", "config/student_1step_calibration_candidates.yaml",
            "config/student_1step_long_last_round.yaml", "config/student_1step_sectors.yaml",
            "config/student_1step_first_holding.yaml")
-
-
-def _planned_settings(wf, *configfiles):
-    """The distillation and sampler-study settings (the evaluation section) a dry run of results/tradeoff.json plans."""
-    out = snakemake(wf, "--dry-run", "--printshellcmds", "results/tradeoff.json", "--configfile", *configfiles).stdout
-    distill = re.search(r"distill-generator .*--settings '(\{.*?\})'", out)
-    study = json.loads(re.search(r"sampler-tradeoff .*--settings '(\{.*?\})'", out)[1])
-    return json.loads(distill[1])["distillation"] if distill else None, study, out
 
 
 def test_the_recipe_grid_puts_the_recipe_s_student_in_the_full_grid(tmp_path):
