@@ -247,31 +247,10 @@ def bench_levels(args) -> tuple[list, dict]:
     return rows, figures
 
 
-def _time_sampling(den, payload, cache, sampler: str, steps: int, args, device) -> float:
-    """Median seconds per scan of one sampler setting with a trained checkpoint's Vehicle prompt."""
-    from omnilidar.generator.schedule import CosineLogSNRSchedule
-
-    cfg = payload["config"]
-    shape = (cfg["range_image"]["height"], cfg["range_image"]["width"])
-    domain = "Vehicle" if "Vehicle" in payload["domains"] else payload["domains"][0]
-    entry = cache["domains"][domain]
-    batch = args.batch or cfg["sampling"]["batch_size"]
-    schedule = CosineLogSNRSchedule(cfg["diffusion"]["logsnr_min"], cfg["diffusion"]["logsnr_max"])
-    runs = []
-    for r in range(args.repeats):
-        _sync(device)
-        t0 = time.perf_counter()
-        generate(den, payload["domains"].index(domain), entry["tokens"][0], entry["mask"][0],
-                 list(range(r * batch, (r + 1) * batch)), shape, sampler=sampler, steps=steps, schedule=schedule,
-                 autocast_bf16=args.bf16)
-        _sync(device)
-        runs.append((time.perf_counter() - t0) / batch)
-    return statistics.median(runs)
-
-
 def bench_student(args) -> tuple[list, dict]:
     """The student in its DDIM steps against its teacher's solvers, seconds per scan, one run."""
     from omnilidar.generator.checkpoint import load_generator
+    from omnilidar.generator.sampling_timing import TimedSetting, time_settings
     from omnilidar.generator.text import load_prompt_cache
 
     device = torch.device(args.device)
@@ -282,10 +261,14 @@ def bench_student(args) -> tuple[list, dict]:
     cache = load_prompt_cache(args.prompts)
     print(f"student {args.student} ({payload['student']['steps']} steps of {payload['student']['sampler']}) "
           f"and teacher {payload['student']['teacher']}, device {device}, threads {torch.get_num_threads()}")
-    rows = [(f"teacher {spec}", _time_sampling(teacher, teacher_payload, cache, spec.split(":")[0],
-                                                int(spec.split(":")[1]), args, device)) for spec in args.samplers]
     steps, solver = int(payload["student"]["steps"]), payload["student"]["sampler"]
-    rows.append((f"student {solver}:{steps}", _time_sampling(student, payload, cache, solver, steps, args, device)))
+    timed = [TimedSetting(teacher, teacher_payload, spec.split(":")[0], int(spec.split(":")[1])) for spec in args.samplers]
+    timed.append(TimedSetting(student, payload, solver, steps))
+    domain = "Vehicle" if "Vehicle" in payload["domains"] else payload["domains"][0]
+    # The repeats go round the settings in turn: a change of load falls on every setting alike.
+    seconds = time_settings(timed, cache, domain, args.batch or payload["config"]["sampling"]["batch_size"],
+                            args.repeats, autocast_bf16=args.bf16)
+    rows = list(zip([f"teacher {spec}" for spec in args.samplers] + [f"student {solver}:{steps}"], seconds))
     for name, per_scan in rows:
         print(f"{name:>28}: median {per_scan:.3f} s/scan, {rows[0][1] / per_scan:.1f}x faster than {rows[0][0]}")
     return ([{"what": f"{name} ({device}, {torch.get_num_threads()} threads)",

@@ -284,7 +284,11 @@ _RULES = {
                          _runtime(_features_seconds(
                              sum(len(s) for s in _EVAL["tradeoff"]["samplers"].values()) * _EVAL["tradeoff"]["scans"]
                              * len(_EVAL["tradeoff"]["domains"] or config["generator"]["prompts"]), [1])
-                             + _features_seconds(_EVAL["scans_per_set"] * len(config["generator"]["prompts"]), [1])), 2),
+                             + _features_seconds(_EVAL["scans_per_set"] * len(config["generator"]["prompts"]), [1])
+                             # every setting timed side by side in the study's job (evaluation.tradeoff.timing)
+                             + sampling_seconds(_EVAL["tradeoff"]["timing"]["scans"] * _EVAL["tradeoff"]["timing"]["repeats"],
+                                                sum(sum(s) for s in _EVAL["tradeoff"]["samplers"].values())
+                                                + (STUDENT_STEPS if _EVAL["tradeoff"]["student"] else 0))), 2),
     # Samples trained and untrained generators itself: evidence.scans per domain, 2 models.
     "generator_evidence": (_EVAL["device"], 16000,
                            _runtime(sampling_seconds(2 * _EVAL["evidence"]["scans"] * len(config["generator"]["prompts"]),

@@ -169,7 +169,7 @@ def test_sampler_tradeoff_one_run(fixture_dir):
     assert all(p["seconds_per_scan"] > 0 for p in t["points"])
     assert any(p["pareto"]["JSD"] for p in t["points"]) and "JSD" in t["recommended"]
     vehicle = t["points"][0]["per_domain"]["Vehicle"]
-    assert set(vehicle) >= {"JSD", "MMD", "FRID", "JSD_std", "FRID_groups", "seconds_per_scan"}
+    assert set(vehicle) >= {"JSD", "MMD", "FRID", "JSD_std", "FRID_groups", "set_seconds_per_scan"}
     assert vehicle["scans_per_group"] == 2 and len(vehicle["FRID_groups"]) == 2
     assert vehicle["JSD"] == pytest.approx(np.mean(vehicle["JSD_groups"]))
     # Best solver per budget of network evaluations, among every setting of that budget.
@@ -194,6 +194,36 @@ def test_sampler_tradeoff_one_run(fixture_dir):
     assert settings_check[best_jsd]["JSD"] == {"held": 1, "of": 1, "missed": {}}  # the best holds itself
     assert t["effects"][0]["name"] == "fog:samples" and t["downstream"] == []  # no GDA curve given
     assert (r / "t.png").stat().st_size > 1000
+
+
+def test_the_study_times_every_setting_side_by_side_not_by_its_sets_recorded_time(fixture_dir, tmp_path):
+    """A set's shards may have been sampled in another run under another load: the study keeps what
+    they recorded beside, and times every setting itself in one job (seconds_per_scan)."""
+    r = fixture_dir
+    gen = json.loads(json.dumps(torch.load(r / "model.pt", weights_only=True)["config"]))
+    gen["sampling"].update(sampler="ddim", steps=1, batch_size=2, scans_per_shard=4, device="cpu")
+    shard = tmp_path / "Vehicle" / "shard_0"
+    assert main(["sample", "--checkpoint", str(r / "model.pt"), "--prompts", str(r / "prompts.pt"), "--domain", "Vehicle",
+                 "--shard", "0", "--settings", json.dumps(gen), "--seed", "0", "--out", str(shard)]) == 0
+    timing = json.loads((shard / "timing.json").read_text())
+    (shard / "timing.json").write_text(json.dumps({**timing, "seconds": 1000.0 * timing["scans"]}))  # a slow neighbour
+    settings = _settings(tradeoff={"samplers": {"ddim": [1, 2]}, "scans": 4, "seed_groups": 2, "domains": ["Vehicle"],
+                                   "feature_metrics": ["FRID"], "timing": {"scans": 1, "repeats": 2}})
+    assert main(["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts",
+                 str(r / "prompts.pt"), "--checkpoint", str(r / "model.pt"), "--weights", f"frid={r / 'frid.pt'}",
+                 "--samples", f"ddim-1/Vehicle={shard}", "--settings", settings, "--out", str(tmp_path / "t.json"),
+                 "--figure", str(tmp_path / "t.png")]) == 0
+    t = json.loads((tmp_path / "t.json").read_text())
+    from_shard, sampled_here = t["points"]
+    assert from_shard["set_seconds_per_scan"] == pytest.approx(1000.0)
+    assert from_shard["per_domain"]["Vehicle"]["set_seconds_per_scan"] == pytest.approx(1000.0)
+    assert 0 < from_shard["seconds_per_scan"] < 100 and 0 < sampled_here["seconds_per_scan"] < 100
+    assert "side by side" in t["device_note"]
+    bad = _settings(tradeoff={"samplers": {"ddim": [1]}, "timing": {"repeats": 0}})
+    assert main(["sampler-tradeoff", *DATA_SOURCE_ARGS, "--domains", str(r / "index.json"), "--prompts",
+                 str(r / "prompts.pt"), "--checkpoint", str(r / "model.pt"), "--settings", bad,
+                 "--out", str(tmp_path / "bad.json"), "--figure", str(tmp_path / "bad.png")]) == 2
+    assert not (tmp_path / "bad.json").exists()
 
 
 def _domains_tree(root: Path, images: dict[str, list[np.ndarray]], dataset: str, split: str) -> Path:

@@ -194,10 +194,11 @@ def run(args) -> int:
     from omnilidar.generator.text import load_prompt_cache
     from omnilidar.devices import resolve_device
     from omnilidar.generator.checkpoint import load_generator
+    from omnilidar.generator.sampling_timing import TimedSetting, time_settings
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors import METRIC_NAMES
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
-    from omnilidar.metrics.generation import group_scores, real_domain_images, sample_images, set_features
+    from omnilidar.metrics.generation import group_scores, real_domain_images, set_features
     from omnilidar.metrics.sample_sets import generated_set, parse_sample_sets
     from omnilidar.provenance import envelope
     from omnilidar.report.generation import collect_weights, pareto_front, tradeoff_figure, write_outputs
@@ -232,9 +233,6 @@ def run(args) -> int:
     reference = reference_record(args.reference or args.domains, args.domains, domains)
     real = {d: set_features(real_domain_images(reference["index"], d, spec.shape, settings["scans_per_set"]), spec,
                             extractors, settings["batch_size"], f"real {d}") for d in domains}
-    # One untimed step so that lazy initialisation is not charged to the first setting.
-    if not sets:
-        sample_images(den, payload, cache, domains[0], 1, "ddim", 1, args.seed, 1)
     settings_list = [(sampler, steps, den, payload) for sampler, steps_list in cfg["samplers"].items()
                      for steps in steps_list]
     student_record = None
@@ -245,21 +243,30 @@ def run(args) -> int:
         settings_list.append(("student", int(student_payload["student"]["steps"]), student, student_payload))
         student_record = describe_student(args.student, student_payload)
     t_all = time.perf_counter()
+
+    def solver(sampler: str, model_payload: dict) -> str:
+        """The student samples with the solver its checkpoint names, in its own steps."""
+        return model_payload["student"]["sampler"] if sampler == "student" else sampler
+
+    timing = cfg["timing"]
+    print(f"timing every setting side by side: {timing['repeats']} x {timing['scans']} scans of {domains[0]}",
+          flush=True)
+    timed_seconds = time_settings([TimedSetting(m, mp, solver(sampler, mp), steps)
+                                   for sampler, steps, m, mp in settings_list],
+                                  cache, domains[0], timing["scans"], timing["repeats"], args.seed)
     points = []
-    for sampler, steps, model, model_payload in settings_list:
+    for (sampler, steps, model, model_payload), seconds in zip(settings_list, timed_seconds):
         per_domain, secs = {}, []
         for d in domains:
-            # The student samples with the solver its checkpoint names, in its own steps.
-            solver = model_payload["student"]["sampler"] if sampler == "student" else sampler
             gen, sec = generated_set(sets, f"{sampler}-{steps}/{d}", model, model_payload, cache, d, cfg["scans"],
-                                     solver, steps, args.seed, settings["batch_size"])
+                                     solver(sampler, model_payload), steps, args.seed, settings["batch_size"])
             scores = group_scores(real[d], set_features(gen, spec, extractors, settings["batch_size"]), extractors,
                                   groups, metrics)
-            per_domain[d] = {**scores, "seconds_per_scan": sec}
+            per_domain[d] = {**scores, "set_seconds_per_scan": sec}
             secs.append(sec)
         secs = [s for s in secs if s is not None]  # shards fully resumed record no time
-        point = {"sampler": sampler, "steps": steps, "network_evaluations": steps,
-                 "seconds_per_scan": float(np.mean(secs)) if secs else None, "per_domain": per_domain}
+        point = {"sampler": sampler, "steps": steps, "network_evaluations": steps, "seconds_per_scan": seconds,
+                 "set_seconds_per_scan": float(np.mean(secs)) if secs else None, "per_domain": per_domain}
         for m in metrics:
             vals = [v[m] for v in per_domain.values()]
             stds = [v[f"{m}_std"] for v in per_domain.values()]
@@ -289,7 +296,10 @@ def run(args) -> int:
     result = envelope(
         "tradeoff", "sampler-tradeoff", settings, {"seed": args.seed, "seed_groups": groups},
         {"sampling_study": time.perf_counter() - t_all}, args.data_source,
-        device_note="timings measured in this one run on the device named above",
+        device_note=(f"seconds_per_scan: every setting timed side by side in this job on the device named above "
+                     f"(median of {timing['repeats']} batches of {timing['scans']} {domains[0]} scans, round-robin "
+                     "over the settings); set_seconds_per_scan: what the sets' own sampling jobs recorded, "
+                     "possibly in other runs under other loads"),
         feature_metrics=feats, metrics=metrics, domains=domains, scans_per_setting=cfg["scans"],
         real_scans=settings["scans_per_set"], real_scans_per_domain={d: real[d].num_scans for d in domains},
         reference=reference, weights=w, comparable_with_paper=comparable, points=points,
