@@ -68,6 +68,18 @@ def test_a_short_student_check_renders_the_student_s_row_and_verdicts_alone():
     assert "The teacher's" not in short and "The teacher's" in full
 
 
+def test_the_speed_line_says_whether_the_study_timed_its_rows_side_by_side():
+    """A study that timed every setting in its own job says so; an earlier one, whose rows carry the
+    sets' own sampling times, says that instead."""
+    doc = json.loads((ROOT / "docs" / "results" / "student_1step_best_teacher.json").read_text())
+    earlier = [line for line in readme.student_check(doc).splitlines() if line.startswith("- Speed:")]
+    for p in doc["points"]:
+        p["set_seconds_per_scan"] = p["seconds_per_scan"]
+    timed = [line for line in readme.student_check(doc).splitlines() if line.startswith("- Speed:")]
+    assert len(earlier) == len(timed) == 1
+    assert "each row timed by its own sampling job" in earlier[0] and "side by side" in timed[0]
+
+
 def test_a_student_calibrated_on_candidates_says_which_setting_each_domain_took_and_the_scans_it_was_scored_on():
     text = "<!-- results:student_1step_candidates_heldout.short -->\n<!-- /results:student_1step_candidates_heldout.short -->\n"
     short = readme.render_page(text, ROOT / "docs" / "results")

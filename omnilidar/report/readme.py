@@ -273,8 +273,11 @@ def _student_lines(doc: dict, teacher_settings: bool = True) -> list[str]:
         lines.append(f"- Its returns and ranges calibrated{per_sector}.")
     if check.get("speedup_over_default"):
         default = check["default_sampler"]
+        # Studies before the side-by-side timing took each row's time from its sets' sampling jobs.
+        how = ("timed side by side in the study's job" if "set_seconds_per_scan" in doc["points"][0]
+               else "each row timed by its own sampling job")
         lines.append(f"- Speed: {check['speedup_over_default']:.1f}x the generator's own sampler in that run "
-                     f"({default['sampler']} x {default['steps']}) in seconds per scan ({doc['device']}).")
+                     f"({default['sampler']} x {default['steps']}) in seconds per scan ({doc['device']}; {how}).")
     return lines
 
 
