@@ -8,7 +8,6 @@ during the measurement falls on every setting alike, and each setting's figure i
 from __future__ import annotations
 
 import statistics
-import time
 from dataclasses import dataclass
 
 import torch
@@ -29,31 +28,18 @@ def time_settings(settings: list[TimedSetting], prompt_cache: dict, domain: str,
     """Median wall-clock seconds per scan of each setting, sampling ``batch`` scans of ``domain``
     ``repeats`` times, round-robin over the settings. Each network first samples one untimed
     one-step scan, so lazy initialisation is charged to no setting."""
-    from omnilidar.generator.diffusion import generate, scan_seed
-    from omnilidar.generator.schedule import CosineLogSNRSchedule
-    from omnilidar.generator.unet import range_image_spec
+    from omnilidar.metrics.generation import sample_images
 
     if batch < 1 or repeats < 1:
         raise ValueError(f"time_settings needs batch >= 1 and repeats >= 1, got {batch} and {repeats}")
-    entry = prompt_cache["domains"][domain]
-
-    def sample(s: TimedSetting, seeds: list[int], sampler: str, steps: int) -> None:
-        cfg = s.payload["config"]
-        schedule = CosineLogSNRSchedule(cfg["diffusion"]["logsnr_min"], cfg["diffusion"]["logsnr_max"])
-        with torch.no_grad():  # the result comes back on the CPU: a GPU has finished when it returns
-            generate(s.denoiser, s.payload["domains"].index(domain), entry["tokens"][0], entry["mask"][0], seeds,
-                     range_image_spec(cfg).shape, sampler, steps, schedule, autocast_bf16=autocast_bf16)
-
     warmed = set()
     for s in settings:
         if id(s.denoiser) not in warmed:
-            sample(s, [scan_seed(seed, domain, 0)], "ddim", 1)
+            sample_images(s.denoiser, s.payload, prompt_cache, domain, 1, "ddim", 1, seed, 1)
             warmed.add(id(s.denoiser))
     runs: list[list[float]] = [[] for _ in settings]
     for r in range(repeats):
-        seeds = [scan_seed(seed, domain, r * batch + i) for i in range(batch)]
         for s, times in zip(settings, runs):
-            t0 = time.perf_counter()
-            sample(s, seeds, s.sampler, s.steps)
-            times.append((time.perf_counter() - t0) / batch)
+            times.append(sample_images(s.denoiser, s.payload, prompt_cache, domain, batch, s.sampler, s.steps,
+                                       seed + r, batch, autocast_bf16)[1])
     return [statistics.median(times) for times in runs]

@@ -251,9 +251,9 @@ def entry_images(entries: list[dict], spec: RangeImageSpec) -> np.ndarray:
 
 
 def sample_images(denoiser, payload: dict, prompt_cache: dict, domain: str, count: int, sampler: str, steps: int,
-                  seed: int, batch_size: int = 8) -> tuple[np.ndarray, float]:
+                  seed: int, batch_size: int = 8, autocast_bf16: bool = False) -> tuple[np.ndarray, float]:
     """``count`` generated range images of ``domain`` (per-scan seeds as in ``omnilidar sample``)
-    and the wall-clock seconds per scan."""
+    and the wall-clock seconds per scan (the images come back on the CPU, so a GPU has finished)."""
     import torch
 
     from omnilidar.generator.diffusion import generate, scan_seed
@@ -273,7 +273,7 @@ def sample_images(denoiser, payload: dict, prompt_cache: dict, domain: str, coun
         seeds = [scan_seed(seed, domain, g) for g in range(start, min(count, start + batch_size))]
         with torch.no_grad():
             out.append(generate(denoiser, payload["domains"].index(domain), entry["tokens"][0], entry["mask"][0],
-                                seeds, spec.shape, sampler, steps, schedule).numpy())
+                                seeds, spec.shape, sampler, steps, schedule, autocast_bf16=autocast_bf16).numpy())
     seconds = (time.perf_counter() - t0) / max(1, count)
     return np.concatenate(out), seconds
 
