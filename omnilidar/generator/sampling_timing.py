@@ -29,6 +29,7 @@ def time_settings(settings: list[TimedSetting], prompt_cache: dict, domain: str,
     ``repeats`` times, round-robin over the settings. Each network first samples one untimed
     one-step scan, so lazy initialisation is charged to no setting."""
     from omnilidar.metrics.generation import sample_images
+    from omnilidar.progress import ProgressLog
 
     if batch < 1 or repeats < 1:
         raise ValueError(f"time_settings needs batch >= 1 and repeats >= 1, got {batch} and {repeats}")
@@ -38,8 +39,10 @@ def time_settings(settings: list[TimedSetting], prompt_cache: dict, domain: str,
             sample_images(s.denoiser, s.payload, prompt_cache, domain, 1, "ddim", 1, seed, 1)
             warmed.add(id(s.denoiser))
     runs: list[list[float]] = [[] for _ in settings]
+    progress = ProgressLog(repeats * sum(s.steps for s in settings), "timing, network evaluations")
     for r in range(repeats):
         for s, times in zip(settings, runs):
             times.append(sample_images(s.denoiser, s.payload, prompt_cache, domain, batch, s.sampler, s.steps,
                                        seed + r, batch, autocast_bf16)[1])
+            progress.step(s.steps)
     return [statistics.median(times) for times in runs]
