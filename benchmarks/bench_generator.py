@@ -250,7 +250,7 @@ def bench_levels(args) -> tuple[list, dict]:
 def bench_student(args) -> tuple[list, dict]:
     """The student in its DDIM steps against its teacher's solvers, seconds per scan, one run."""
     from omnilidar.generator.checkpoint import load_generator
-    from omnilidar.generator.sampling_timing import TimedSetting, time_settings
+    from omnilidar.metrics.sampling_timing import TimedSetting, time_settings
     from omnilidar.generator.text import load_prompt_cache
 
     device = torch.device(args.device)

@@ -194,7 +194,7 @@ def run(args) -> int:
     from omnilidar.generator.text import load_prompt_cache
     from omnilidar.devices import resolve_device
     from omnilidar.generator.checkpoint import load_generator
-    from omnilidar.generator.sampling_timing import TimedSetting, time_settings
+    from omnilidar.metrics.sampling_timing import TimedSetting, time_settings
     from omnilidar.generator.unet import range_image_spec
     from omnilidar.metrics.extractors import METRIC_NAMES
     from omnilidar.metrics.extractors.weights import load_extractors, parse_pairs
